@@ -1,0 +1,251 @@
+"""ildbench command line.
+
+    ildbench tasks                      registered tasks, backends, demos and references
+    ildbench methods                    registered methods and what each uses
+    ildbench run --method M --task T --seed S --budget 300s [--budget-steps N]
+    ildbench sweep --methods M.. --tasks T.. --seeds N --budget 60s     (local grid)
+    ildbench quick                      the main job: a quick leaderboard on the defaults
+    ildbench leaderboard                print + write results/leaderboard.{md,csv}
+    ildbench expert train --task T      train a PPO expert (progress, time left)
+    ildbench expert demo --task T       roll the expert into the task's demo file
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import warnings
+
+EXIT_BAD_INPUT = 2
+
+
+def _budget(args):
+    from bench.budget import Budget, parse_seconds
+    seconds = None if args.budget is None else parse_seconds(args.budget)
+    return Budget(seconds=seconds, env_steps=args.budget_steps,
+                  charge_compile=not args.no_charge_compile, evals=args.evals)
+
+
+def _overrides(pairs):
+    out = {}
+    for p in pairs or []:
+        k, sep, v = p.partition("=")
+        if not sep or not k:
+            raise ValueError(f"--set expects key=value, got {p!r}")
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _print_table(title, columns, rows):
+    from rich.console import Console
+    from rich.table import Table
+    t = Table(title=title)
+    for c in columns:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*[str(x) for x in r])
+    # Piped output (logs, files, tests) is not wrapped to a guessed terminal width.
+    Console(width=None if sys.stdout.isatty() else 200).print(t)
+
+
+def cmd_tasks(args):
+    from tasks import TASKS, make_task
+    from tasks.demo import DemoError, load_demo
+    rows = []
+    for name, spec in TASKS.items():
+        task = make_task(name)
+        refs = "no demo yet"
+        if spec.demo_path and os.path.exists(spec.demo_path):
+            try:
+                d = load_demo(spec.demo_path, task)
+                refs = f"{d.num_demos} demos; expert {d.expert_return:.2f}, random " \
+                       f"{d.random_return:.2f}"
+            except DemoError as e:
+                refs = f"INVALID: {e}"
+        rows.append((name, spec.backend, task.obs_size, task.action_size, task.state_size,
+                     spec.episode_length, refs))
+    _print_table("ildbench tasks", ["task", "backend", "obs", "act", "matched", "T",
+                                    "demo / references"], rows)
+
+
+def cmd_methods(args):
+    from bench.plugins import _SOURCES, all_methods
+    rows = [(m.name, m.uses.describe(), "reference" if m.reference else "imitation",
+             ", ".join(m.presets) or "-", _SOURCES[m.name], m.description)
+            for m in all_methods().values()]
+    _print_table("ildbench methods", ["method", "uses", "kind", "presets", "source",
+                                      "description"], rows)
+
+
+def _requests(args, methods, tasks, seeds):
+    from bench.evaluator import EvalConfig
+    from bench.runner import RunRequest
+    budget = _budget(args)
+    ev = EvalConfig(num_episodes=args.eval_episodes, deterministic=not args.stochastic_eval)
+    return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=args.preset,
+                       overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos)
+            for m, t, s in itertools.product(methods, tasks, seeds)]
+
+
+def _run_all(args, requests):
+    from bench.runner import enable_compilation_cache, execute, prepare
+    from bench.store import Store
+    prepared = [prepare(r) for r in requests]  # every input error surfaces before any work
+    if getattr(args, "dry_run", False):
+        for p in prepared:
+            done = Store(args.store).finished(p.run_id)
+            print(f"{p.run_id}  {p.request.method:10s} {p.request.task:18s} seed "
+                  f"{p.request.seed}  {'done' if done else 'to run'}")
+        return 0
+    enable_compilation_cache(args.jax_cache)
+    store = Store(args.store)
+    statuses = []
+    for i, p in enumerate(prepared, 1):
+        print(f"[{i}/{len(prepared)}]", flush=True)
+        rec, skipped = execute(p, store, force=args.force,
+                               log=lambda s: print(s, flush=True))
+        if skipped:
+            print(f"run {p.run_id}: already finished ({rec['status']}), skipped")
+        statuses.append(rec["status"])
+    return 1 if "failed" in statuses else 0
+
+
+def cmd_run(args):
+    return _run_all(args, _requests(args, [args.method], [args.task], [args.seed]))
+
+
+def cmd_sweep(args):
+    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    code = _run_all(args, _requests(args, args.methods, args.tasks, seeds))
+    if not args.dry_run:
+        cmd_leaderboard(args)
+    return code
+
+
+def cmd_quick(args):
+    """All registered imitation methods x tasks that have a demo x 2 seeds, 60 s each."""
+    from bench.plugins import all_methods
+    from tasks import TASKS
+    args.methods = [m.name for m in all_methods().values() if not m.reference]
+    args.tasks = [t for t, s in TASKS.items() if s.demo_path and os.path.exists(s.demo_path)]
+    return cmd_sweep(args)
+
+
+def cmd_leaderboard(args):
+    from bench import leaderboard as lb
+    from bench.store import Store
+    board = lb.leaderboard(Store(args.store))
+    print(lb.to_markdown(board))
+    md, csv = lb.write(board, args.out)
+    print(f"written: {md}, {csv}")
+    return 0
+
+
+def cmd_expert(args):
+    from tasks import get_spec
+    from tasks.expert import make_demo, train_expert
+    get_spec(args.task)  # unknown task -> error listing valid ones
+    if args.expert_cmd == "train":
+        train_expert(args.task, seed=args.seed, num_timesteps=args.steps)
+    else:
+        make_demo(args.task, rollouts=args.rollouts, keep=args.keep, seed=args.seed)
+    return 0
+
+
+def _add_run_options(p, budget_default=None):
+    p.add_argument("--budget", default=budget_default,
+                   help="training wall-clock per run: 300, 300s, 10m, 1h")
+    p.add_argument("--budget-steps", type=int, default=None,
+                   help="env-step budget (deterministic; with or instead of --budget)")
+    p.add_argument("--no-charge-compile", action="store_true",
+                   help="do not count JIT compile time against the budget")
+    p.add_argument("--evals", type=int, default=10, help="evaluations spread over the budget")
+    p.add_argument("--preset", default=None, help="method config preset (e.g. cpu, paper)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config field (repeatable)")
+    p.add_argument("--eval-episodes", type=int, default=32)
+    p.add_argument("--stochastic-eval", action="store_true")
+    p.add_argument("--num-demos", type=int, default=1, help="demos handed to the method")
+    p.add_argument("--force", action="store_true", help="re-run finished cells")
+    p.add_argument("--dry-run", action="store_true", help="print the plan only")
+    p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
+
+
+def build_parser():
+    ap = argparse.ArgumentParser(prog="ildbench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--store", default=None,
+                        help="results store dir (default: runs/ or $ILDBENCH_STORE)")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    _add = sub.add_parser
+    sub.add_parser = lambda *a, **k: _add(*a, parents=[common], **k)
+    sub.add_parser("tasks", help="list tasks").set_defaults(fn=cmd_tasks)
+    sub.add_parser("methods", help="list methods").set_defaults(fn=cmd_methods)
+    p = sub.add_parser("run", help="one budgeted run")
+    p.add_argument("--method", required=True)
+    p.add_argument("--task", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    _add_run_options(p)
+    p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("sweep", help="methods x tasks x seeds, skipping finished cells")
+    p.add_argument("--methods", nargs="+", required=True)
+    p.add_argument("--tasks", nargs="+", required=True)
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--out", default="results")
+    _add_run_options(p)
+    p.set_defaults(fn=cmd_sweep)
+    p = sub.add_parser("quick", help="the main job: quick leaderboard on embedded defaults")
+    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--out", default="results/quick")
+    _add_run_options(p, budget_default="60s")
+    p.set_defaults(fn=cmd_quick)
+    p = sub.add_parser("leaderboard", help="aggregate the store into a table")
+    p.add_argument("--out", default="results")
+    p.set_defaults(fn=cmd_leaderboard)
+    p = sub.add_parser("expert", help="expert training and demos")
+    esub = p.add_subparsers(dest="expert_cmd", required=True)
+    _eadd = esub.add_parser
+    esub.add_parser = lambda *a, **k: _eadd(*a, parents=[common], **k)
+    e = esub.add_parser("train", help="train a PPO expert for a task")
+    e.add_argument("--task", required=True)
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--steps", type=int, default=None, help="override PPO num_timesteps")
+    e = esub.add_parser("demo", help="roll the expert into the task's demo file")
+    e.add_argument("--task", required=True)
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--rollouts", type=int, default=64)
+    e.add_argument("--keep", type=int, default=16)
+    p.set_defaults(fn=cmd_expert)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.store is None:
+        from bench.store import DEFAULT_ROOT
+        args.store = DEFAULT_ROOT
+    if args.cmd in ("run", "sweep", "quick") and args.budget is None and \
+            args.budget_steps is None:
+        print("error: give a budget: --budget 300s (wall-clock) and/or --budget-steps N",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    warnings.filterwarnings("ignore", message="Brax System, piplines")
+    from bench.api import InformationError
+    from bench.budget import BudgetError
+    from bench.plugins import ConfigError, UnknownMethodError
+    from tasks.demo import DemoError
+    from tasks.registry import UnknownTaskError
+    try:
+        return args.fn(args) or 0
+    except (UnknownTaskError, UnknownMethodError, ConfigError, BudgetError, DemoError,
+            InformationError, FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

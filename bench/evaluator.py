@@ -1,0 +1,159 @@
+"""The one shared evaluator: every method's policy is scored by this code.
+
+N episodes of exactly `episode_length` steps on the task's *unwrapped* env. An episode that
+terminates early keeps its partial return (rewards after the first done are masked), as in
+the paper. Score = raw return and normalized (R - R_random) / (R_expert - R_random) with
+both references measured by this evaluator and stored in the task's demo.
+
+The evaluation episodes are fixed by the eval seed (the run seed), so every method sees the
+same initial states for the same seed, and every evaluation within a run uses the same
+episodes (a smoother curve, no selection on lucky episodes).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bench.api import InformationError, Policy
+from tasks.core import Task
+
+EVAL_KEY_SALT = 0x5EED  # eval keys never collide with a method's training keys of that seed
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    num_episodes: int = 32
+    """Parallel evaluation episodes."""
+    deterministic: bool = True
+    """Act with the policy's mode (True) or sample (False)."""
+
+    def __post_init__(self):
+        if self.num_episodes < 1:
+            raise ValueError(f"eval num_episodes must be >= 1, got {self.num_episodes}")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalResult:
+    returns: np.ndarray
+    """(N,) raw episode returns."""
+    lengths: np.ndarray
+    """(N,) steps before termination (episode_length if none)."""
+    normalized: np.ndarray | None
+    """(N,) normalized returns, or None without references."""
+
+    @property
+    def mean_return(self) -> float:
+        return float(np.mean(self.returns))
+
+    @property
+    def mean_normalized(self) -> float | None:
+        return None if self.normalized is None else float(np.mean(self.normalized))
+
+    @property
+    def finite(self) -> bool:
+        return bool(np.isfinite(self.returns).all())
+
+
+def eval_key(seed: int) -> jax.Array:
+    return jax.random.fold_in(jax.random.PRNGKey(seed), EVAL_KEY_SALT)
+
+
+def _step_masked(env, s, a, alive, ret, length):
+    s = env.step(s, a)
+    ret = ret + alive * s.reward
+    length = length + alive
+    alive = alive * (1.0 - s.done)
+    return s, alive, ret, length
+
+
+@functools.lru_cache(maxsize=64)
+def _jax_episodes(env, act, kind, horizon: int, deterministic: bool):
+    """jit(vmap(one episode)) for a JAX policy; cached per (env, act) so it compiles once."""
+
+    def episode(params, key):
+        k_reset, k_act = jax.random.split(key)
+        s = env.reset(k_reset)
+
+        def body(carry, k):
+            s, alive, ret, length = carry
+            a = act(params, s if kind == "jax_state" else s.obs, k, deterministic)
+            return _step_masked(env, s, a, alive, ret, length), None
+
+        init = (s, jnp.ones(()), jnp.zeros(()), jnp.zeros(()))
+        (_, _, ret, length), _ = jax.lax.scan(body, init, jax.random.split(k_act, horizon))
+        return ret, length
+
+    return jax.jit(jax.vmap(episode, in_axes=(None, 0)))
+
+
+@functools.lru_cache(maxsize=16)
+def _batched_env_fns(env):
+    reset = jax.jit(jax.vmap(env.reset))
+    step = jax.jit(jax.vmap(lambda s, a, alive, ret, n: _step_masked(env, s, a, alive, ret, n)))
+    return reset, step
+
+
+def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
+                 deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
+    keys = jax.random.split(key, num_episodes)
+    if policy.kind in ("jax", "jax_state"):
+        f = _jax_episodes(task.env, policy.act, policy.kind, task.episode_length, deterministic)
+        ret, length = f(policy.params, keys)
+        return np.asarray(ret, np.float64), np.asarray(length, np.int64)
+    if policy.kind != "host":
+        raise ValueError(f"unknown policy kind {policy.kind!r}; use 'jax', 'host' or 'jax_state'")
+    # Host policy (torch/numpy): one batched jitted env call per step, one conversion each way.
+    reset, step = _batched_env_fns(task.env)
+    reset_keys = jax.vmap(lambda k: jax.random.split(k)[0])(keys)
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).tolist())
+    s = reset(reset_keys)
+    alive = jnp.ones(num_episodes)
+    ret = jnp.zeros(num_episodes)
+    length = jnp.zeros(num_episodes)
+    for _ in range(task.episode_length):
+        a = policy.act(policy.params, np.asarray(s.obs), rng, deterministic)
+        s, alive, ret, length = step(s, jnp.asarray(a, jnp.float32), alive, ret, length)
+    return np.asarray(ret, np.float64), np.asarray(length, np.int64)
+
+
+class Evaluator:
+    """Scores policies on one task with fixed references (R_expert, R_random)."""
+
+    def __init__(self, task: Task, config: EvalConfig = EvalConfig(),
+                 expert_return: float | None = None, random_return: float | None = None,
+                 allow_sim_at_test: bool = False):
+        self.task = task
+        self.config = config
+        self.expert_return = expert_return
+        self.random_return = random_return
+        self.allow_sim_at_test = allow_sim_at_test
+
+    def normalize(self, returns):
+        if self.expert_return is None or self.random_return is None:
+            return None
+        return (np.asarray(returns) - self.random_return) / (self.expert_return -
+                                                             self.random_return)
+
+    def evaluate(self, policy: Policy, seed: int) -> EvalResult:
+        if policy.kind == "jax_state" and not self.allow_sim_at_test:
+            raise InformationError("this policy acts on the simulator state; its method must "
+                                   "declare Uses(sim_at_test=True)")
+        ret, length = run_episodes(self.task, policy, eval_key(seed), self.config.num_episodes,
+                                   self.config.deterministic)
+        return EvalResult(returns=ret, lengths=length, normalized=self.normalize(ret))
+
+
+def random_policy(action_size: int) -> Policy:
+    """Uniform random actions in [-1, 1]: the R_random reference."""
+    return Policy(act=_cached_random_act(action_size), params=())
+
+
+@functools.lru_cache(maxsize=None)
+def _cached_random_act(action_size: int):
+    def act(params, obs, key, deterministic):
+        return jax.random.uniform(key, (action_size,), minval=-1.0, maxval=1.0)
+    return act

@@ -1,0 +1,72 @@
+"""Leaderboard: mean +/- std of the FINAL normalized score per task x method, over seeds.
+
+A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never
+had one); 'failed' runs are listed in the `failed` column and not averaged. Records that
+differ only in seed are pooled; the budget is shown so unequal budgets are visible.
+"""
+from __future__ import annotations
+
+import os
+
+import pandas as pd
+
+from bench.api import Uses
+from bench.budget import Budget
+from bench.store import Store
+
+COLUMNS = ["task", "method", "uses", "budget", "seeds", "normalized_mean", "normalized_std",
+           "return_mean", "diverged", "failed"]
+
+
+def records_frame(store: Store) -> pd.DataFrame:
+    rows = []
+    for r in store.records():
+        norm = r.get("final_normalized")
+        if r["status"] == "diverged" and norm is None:
+            norm = 0.0
+        rows.append({"task": r["task"], "method": r["method"], "seed": r["seed"],
+                     "status": r["status"], "normalized": norm, "return": r.get("final_return"),
+                     "uses": Uses(**r["uses"]).describe() + (" (reference)" if r.get(
+                         "reference_method") else ""),
+                     "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})
+    return pd.DataFrame(rows, columns=["task", "method", "seed", "status", "normalized",
+                                       "return", "uses", "budget", "train_s"])
+
+
+def leaderboard(store: Store) -> pd.DataFrame:
+    df = records_frame(store)
+    if df.empty:
+        return pd.DataFrame(columns=COLUMNS)
+    out = []
+    for (task, method, uses, budget), g in df.groupby(["task", "method", "uses", "budget"]):
+        scored = g[g.status.isin(["ok", "diverged"])]
+        out.append({"task": task, "method": method, "uses": uses, "budget": budget,
+                    "seeds": len(scored),
+                    "normalized_mean": scored.normalized.astype(float).mean(),
+                    "normalized_std": scored.normalized.astype(float).std(ddof=1),
+                    "return_mean": scored["return"].astype(float).mean(),
+                    "diverged": int((g.status == "diverged").sum()),
+                    "failed": int((g.status == "failed").sum())})
+    return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
+                                                          ascending=[True, False])
+
+
+def to_markdown(board: pd.DataFrame) -> str:
+    if board.empty:
+        return "_no finished runs in the store_\n"
+    show = board.copy()
+    show["normalized"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else f"{m:.3f}"
+                          for m, s in zip(show.normalized_mean, show.normalized_std)]
+    show["return"] = show.return_mean.map(lambda v: f"{v:.2f}")
+    cols = ["task", "method", "normalized", "return", "seeds", "budget", "uses", "diverged",
+            "failed"]
+    return show[cols].to_markdown(index=False) + "\n"
+
+
+def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:
+    os.makedirs(out_dir, exist_ok=True)
+    md, csv = os.path.join(out_dir, "leaderboard.md"), os.path.join(out_dir, "leaderboard.csv")
+    with open(md, "w") as f:
+        f.write(to_markdown(board))
+    board.to_csv(csv, index=False)
+    return md, csv

@@ -1,0 +1,127 @@
+"""Method registry: in-repo methods (each folder under methods/ whose package exports
+`METHOD`) plus third-party methods from the entry-point group `ildbench.methods`.
+
+A third-party package adds, in its pyproject.toml:
+
+    [project.entry-points."ildbench.methods"]
+    mymethod = "mypkg.mymethod:METHOD"      # a bench.api.MethodSpec
+
+Duplicate names raise. bench/ never imports a concrete method by name: only through here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import pkgutil
+import typing
+from importlib import metadata
+from typing import Any, Mapping
+
+from bench.api import MethodSpec
+
+ENTRY_POINT_GROUP = "ildbench.methods"
+
+
+class UnknownMethodError(KeyError):
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class ConfigError(ValueError):
+    pass
+
+
+_REGISTRY: dict[str, MethodSpec] = {}
+_SOURCES: dict[str, str] = {}
+_loaded = False
+
+
+def register(spec: MethodSpec, source: str = "in-repo") -> MethodSpec:
+    if not isinstance(spec, MethodSpec):
+        raise TypeError(f"{source}: expected a bench.api.MethodSpec, got {type(spec).__name__}")
+    if spec.name in _REGISTRY:
+        raise ValueError(f"method {spec.name!r} is registered twice ({_SOURCES[spec.name]} and "
+                         f"{source}); rename one of them")
+    if not (dataclasses.is_dataclass(spec.config_cls)
+            and spec.config_cls.__dataclass_params__.frozen):
+        raise TypeError(f"method {spec.name!r}: config_cls must be a frozen dataclass")
+    _REGISTRY[spec.name] = spec
+    _SOURCES[spec.name] = source
+    return spec
+
+
+def _load_all() -> None:
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
+    import methods
+    for info in pkgutil.iter_modules(methods.__path__):
+        if not info.ispkg or info.name.startswith("_") or info.name == "common":
+            continue
+        module = importlib.import_module(f"methods.{info.name}")
+        if hasattr(module, "METHOD"):
+            register(module.METHOD, source=f"methods/{info.name}")
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        if ep.value.startswith("methods."):  # our own methods, if the install lists them
+            continue
+        register(ep.load(), source=f"entry point {ep.name} = {ep.value}")
+
+
+def all_methods() -> dict[str, MethodSpec]:
+    _load_all()
+    return dict(_REGISTRY)
+
+
+def get_method(name: str) -> MethodSpec:
+    methods_ = all_methods()
+    if name not in methods_:
+        raise UnknownMethodError(
+            f"unknown method {name!r}; valid methods: {', '.join(sorted(methods_))}")
+    return methods_[name]
+
+
+def _coerce(field: dataclasses.Field, hint, value: Any, method: str) -> Any:
+    """CLI overrides arrive as strings; turn them into the field's type."""
+    if not isinstance(value, str):
+        return value
+    origin = typing.get_origin(hint)
+    try:
+        if hint is bool:
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(value)
+        if hint in (int, float, str):
+            return hint(value)
+        if origin is tuple:
+            (inner, *_), = [typing.get_args(hint)]
+            return tuple(inner(v) for v in value.strip("()[] ").split(",") if v.strip())
+    except ValueError:
+        raise ConfigError(f"method {method!r}: config field {field.name!r} expects "
+                          f"{getattr(hint, '__name__', hint)}, got {value!r}") from None
+    return value
+
+
+def build_config(spec: MethodSpec, task: str, preset: str | None = None,
+                 overrides: Mapping[str, Any] | None = None):
+    """defaults (the paper's) <- per-task overrides <- preset <- user overrides."""
+    fields = {f.name: f for f in dataclasses.fields(spec.config_cls)}
+    hints = typing.get_type_hints(spec.config_cls)
+    if preset is not None and preset not in spec.presets:
+        raise ConfigError(f"method {spec.name!r} has no preset {preset!r}; presets: "
+                          f"{', '.join(sorted(spec.presets)) or 'none'}")
+    merged: dict[str, Any] = {}
+    layers = [spec.task_overrides.get(task, {}), spec.presets.get(preset, {}) if preset else {},
+              overrides or {}]
+    for layer in layers:
+        for k, v in layer.items():
+            if k not in fields:
+                raise ConfigError(f"method {spec.name!r} has no config field {k!r}; fields: "
+                                  f"{', '.join(fields)}")
+            merged[k] = _coerce(fields[k], hints[k], v, spec.name)
+    try:
+        return spec.config_cls(**merged)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"method {spec.name!r}: invalid config: {e}") from e

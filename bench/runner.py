@@ -1,0 +1,247 @@
+"""One budgeted run: task -> demo -> method -> evaluation -> stored record.
+
+Everything that can be wrong with the input (unknown names, invalid config or budget,
+malformed or mismatched demo) is checked before any work starts and before anything is
+written. A run that fails is recorded as 'failed' with its message; one that produces
+non-finite numbers as 'diverged' with its last valid evaluation. Finished records
+('ok'/'diverged') are never overwritten unless forced.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import time
+import traceback
+from typing import Any, Callable, Mapping
+
+import jax
+import numpy as np
+
+from bench import __version__
+from bench.access import DemoView, TaskView
+from bench.api import Diverged, MethodSpec, Policy, TrainResult
+from bench.budget import Budget, Clock
+from bench.evaluator import EvalConfig, Evaluator
+from bench.plugins import build_config, get_method
+from bench.store import Store
+from tasks import make_task
+from tasks.demo import Demo, library_versions, load_demo
+
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def enable_compilation_cache(path: str | None = None, min_compile_s: float = 0.5) -> str:
+    """JAX's persistent compilation cache, so a repeated configuration skips most compiling.
+    Location: `path`, else $ILDBENCH_JAX_CACHE, else ~/.cache/ildbench/jax. JAX fixes the
+    location at the first compilation of the process: call this before any."""
+    path = path or os.environ.get("ILDBENCH_JAX_CACHE") or os.path.join(
+        os.path.expanduser("~"), ".cache", "ildbench", "jax")
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def git_revision() -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", _REPO, "rev-parse", "HEAD"], capture_output=True,
+                             text=True, timeout=5)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def machine() -> dict:
+    return {"platform": platform.platform(), "processor": platform.processor(),
+            "cpus": os.cpu_count(), "python": platform.python_version(),
+            "jax_devices": [str(d) for d in jax.devices()]}
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, default=str)
+
+
+def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budget: Budget,
+           eval_cfg: EvalConfig, num_demos: int) -> str:
+    """Content hash of everything that determines the result. The git revision is recorded
+    but not hashed (it would re-run every cell after any commit); a method's `version`
+    and the ildbench version are hashed instead: bump them when results change."""
+    key = {"method": method.name, "method_version": method.version,
+           "config": dataclasses.asdict(config), "task": task, "demo": demo_sha,
+           "seed": seed, "budget": dataclasses.asdict(budget),
+           "eval": dataclasses.asdict(eval_cfg), "num_demos": num_demos,
+           "ildbench": __version__}
+    return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
+
+
+def _finite_tree(tree) -> bool:
+    leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+    return all(np.isfinite(x).all() for x in leaves if np.issubdtype(x.dtype, np.inexact))
+
+
+class RunContext:
+    """Handed to a method's train(): its budget, its clock, and the report hook."""
+
+    def __init__(self, budget: Budget, evaluator: Evaluator, seed: int,
+                 log: Callable[[str], None] = lambda s: None):
+        self.budget = budget
+        self.seed = seed
+        self.clock = Clock(budget.charge_compile)
+        self.curve: list[dict] = []
+        self.last_metrics: dict = {}
+        self.log = log
+        self._evaluator = evaluator
+        self._next_eval_s = 0.0 if budget.seconds is None else budget.seconds / budget.evals
+        self._next_eval_steps = (None if budget.env_steps is None
+                                 else budget.env_steps / budget.evals)
+
+    def elapsed(self) -> float:
+        return self.clock.elapsed()
+
+    def should_stop(self, env_steps: int) -> bool:
+        """True once the budget is spent: the method must then return its final policy."""
+        b = self.budget
+        return ((b.seconds is not None and self.clock.elapsed() >= b.seconds)
+                or (b.env_steps is not None and env_steps >= b.env_steps))
+
+    def report(self, policy: Policy, env_steps: int, metrics: Mapping[str, Any] | None = None,
+               force_eval: bool = False) -> None:
+        """Call from the method's outer loop. Records metrics; evaluates when due (clock
+        paused). Raises Diverged if the metrics or the policy are non-finite."""
+        metrics = {k: float(v) for k, v in (metrics or {}).items()}
+        self.last_metrics = metrics
+        bad = [k for k, v in metrics.items() if not np.isfinite(v)]
+        if bad or not _finite_tree(policy.params):
+            raise Diverged(f"non-finite {'metrics ' + ', '.join(bad) if bad else 'parameters'} "
+                           f"at env step {env_steps}, train time {self.elapsed():.1f}s")
+        b = self.budget
+        due = force_eval or (b.seconds is not None and self.elapsed() >= self._next_eval_s) or (
+            self._next_eval_steps is not None and env_steps >= self._next_eval_steps)
+        if due:
+            self.evaluate(policy, env_steps)
+            if b.seconds is not None:
+                while self._next_eval_s <= self.elapsed():
+                    self._next_eval_s += b.seconds / b.evals
+            if self._next_eval_steps is not None:
+                while self._next_eval_steps <= env_steps:
+                    self._next_eval_steps += b.env_steps / b.evals
+
+    def evaluate(self, policy: Policy, env_steps: int) -> dict:
+        with self.clock.paused():
+            res = self._evaluator.evaluate(policy, self.seed)
+        if not res.finite:
+            raise Diverged(f"non-finite evaluation return at env step {env_steps}")
+        point = {"train_s": round(self.elapsed(), 3), "env_steps": int(env_steps),
+                 "return": res.mean_return, "normalized": res.mean_normalized}
+        self.curve.append(point)
+        self.log(f"  eval @ {point['train_s']:.1f}s, {env_steps} steps: return "
+                 f"{point['return']:.2f}, normalized {point['normalized']}")
+        return point
+
+
+@dataclasses.dataclass(frozen=True)
+class RunRequest:
+    method: str
+    task: str
+    seed: int
+    budget: Budget
+    preset: str | None = None
+    overrides: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    eval: EvalConfig = EvalConfig()
+    num_demos: int = 1
+
+
+@dataclasses.dataclass
+class Prepared:
+    request: RunRequest
+    spec: MethodSpec
+    config: Any
+    demo: Demo
+    run_id: str
+
+
+def prepare(req: RunRequest) -> Prepared:
+    """Validate everything and compute the run id. No work, no writes."""
+    spec = get_method(req.method)
+    task = make_task(req.task)
+    config = build_config(spec, req.task, req.preset, req.overrides)
+    if task.spec.demo_path is None:
+        raise FileNotFoundError(f"task {req.task!r} has no demo yet; create one with "
+                                f"`ildbench expert train --task {req.task}` then "
+                                f"`ildbench expert demo --task {req.task}`")
+    demo = load_demo(task.spec.demo_path, task)
+    if not 1 <= req.num_demos <= demo.num_demos:
+        raise ValueError(f"num_demos must be in 1..{demo.num_demos} for {demo.path}, got "
+                         f"{req.num_demos}")
+    rid = run_id(spec, config, req.task, demo.sha256, req.seed, req.budget, req.eval,
+                 req.num_demos)
+    return Prepared(req, spec, config, demo, rid)
+
+
+def execute(p: Prepared, store: Store, force: bool = False,
+            log: Callable[[str], None] = print) -> tuple[dict, bool]:
+    """Run one prepared cell; returns (record, skipped)."""
+    if not force:
+        done = store.finished(p.run_id)
+        if done is not None:
+            return done, True
+    req, spec = p.request, p.spec
+    task = make_task(req.task)
+    evaluator = Evaluator(task, req.eval, p.demo.expert_return, p.demo.random_return,
+                          allow_sim_at_test=spec.uses.sim_at_test)
+    ctx = RunContext(req.budget, evaluator, req.seed, log=log)
+    started = datetime.datetime.now(datetime.timezone.utc)
+    t0 = time.perf_counter()
+    status, message, result = "ok", "", None
+    log(f"run {p.run_id}: {spec.name} on {req.task}, seed {req.seed}, "
+        f"budget {req.budget.describe()}")
+    try:
+        result = spec.train(TaskView(task, spec.uses, spec.name),
+                            DemoView(p.demo, spec.uses, spec.name, req.num_demos),
+                            p.config, ctx, req.seed)
+        if not isinstance(result, TrainResult):
+            raise TypeError(f"method {spec.name!r} returned {type(result).__name__}, "
+                            "expected bench.api.TrainResult")
+        if not _finite_tree(result.policy.params):
+            raise Diverged("the final policy has non-finite parameters")
+        train_s = ctx.elapsed()
+        final = ctx.evaluate(result.policy, result.env_steps)
+    except Diverged as e:
+        status, message = "diverged", str(e)
+    except Exception as e:  # recorded, never raised past the record
+        status, message = "failed", f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=8)}"
+    if status != "ok":
+        train_s = ctx.elapsed()
+        final = ctx.curve[-1] if ctx.curve else {"return": None, "normalized": None,
+                                                 "env_steps": 0, "train_s": train_s}
+    ctx.clock.close()
+    record = {
+        "run_id": p.run_id, "method": spec.name, "method_version": spec.version,
+        "task": req.task, "seed": req.seed, "preset": req.preset,
+        "config": dataclasses.asdict(p.config), "uses": dataclasses.asdict(spec.uses),
+        "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
+        "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
+        "status": status, "message": message,
+        "final_return": final["return"], "final_normalized": final["normalized"],
+        "final_from": "final policy" if status == "ok" else "last valid evaluation",
+        "curve": ctx.curve, "train_metrics": ctx.last_metrics,
+        "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
+        "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
+        "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},
+        "references": {"expert_return": p.demo.expert_return,
+                       "random_return": p.demo.random_return},
+        "demo": {"path": os.path.relpath(p.demo.path, _REPO), "sha256": p.demo.sha256},
+        "versions": library_versions(), "git_revision": git_revision(), "machine": machine(),
+        "started": started.isoformat(), "finished": datetime.datetime.now(
+            datetime.timezone.utc).isoformat(),
+    }
+    store.write(record)
+    log(f"run {p.run_id}: {status}, final return {record['final_return']}, normalized "
+        f"{record['final_normalized']}" + (f"\n{message}" if status == "failed" else ""))
+    return record, False

@@ -1,0 +1,64 @@
+"""Results store: one JSON file per run in a local directory (the embedded default).
+
+Writes are atomic (temp file in the same directory, fsync, os.replace), so a killed run or
+a crashed writer never leaves a half-written or corrupted record, and concurrent writers of
+different runs never touch the same file. Run ids are content hashes, so a finished cell is
+found by name and skipped.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import warnings
+from typing import Iterator
+
+DEFAULT_ROOT = os.environ.get("ILDBENCH_STORE", "runs")
+FINISHED = ("ok", "diverged")
+
+
+class Store:
+    def __init__(self, root: str = DEFAULT_ROOT):
+        self.root = root
+
+    def path(self, run_id: str) -> str:
+        return os.path.join(self.root, f"{run_id}.json")
+
+    def get(self, run_id: str) -> dict | None:
+        try:
+            with open(self.path(run_id)) as f:
+                return json.load(f)
+        except FileNotFoundError:
+            return None
+
+    def finished(self, run_id: str) -> dict | None:
+        rec = self.get(run_id)
+        return rec if rec is not None and rec.get("status") in FINISHED else None
+
+    def write(self, record: dict) -> str:
+        os.makedirs(self.root, exist_ok=True)
+        path = self.path(record["run_id"])
+        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".json")
+        try:
+            with os.fdopen(fd, "w") as f:
+                json.dump(record, f, indent=1, sort_keys=True, allow_nan=True)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    def records(self) -> Iterator[dict]:
+        if not os.path.isdir(self.root):
+            return
+        for name in sorted(os.listdir(self.root)):
+            if not name.endswith(".json") or name.startswith("."):
+                continue
+            try:
+                with open(os.path.join(self.root, name)) as f:
+                    yield json.load(f)
+            except (OSError, json.JSONDecodeError) as e:  # hand-edited or foreign file
+                warnings.warn(f"skipping unreadable record {name}: {e}")

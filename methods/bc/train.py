@@ -1,0 +1,53 @@
+"""Behaviour cloning on the demo's (o_t, a_t) pairs."""
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from bench.api import Policy, TrainResult
+from methods.bc.config import BCConfig
+from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_loss
+
+
+@flax.struct.dataclass
+class TrainingState:
+    params: dict
+    opt_state: optax.OptState
+    key: jax.Array
+
+
+def train(task, demo, config: BCConfig, ctx, seed: int) -> TrainResult:
+    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)        # o_0..o_{T-1}
+    actions = jnp.asarray(demo.actions).reshape(-1, task.action_size)     # a_0..a_{T-1}
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
+    # init_key: network weights; loop_key: the per-update sampling noise.
+    init_key, loop_key = jax.random.split(jax.random.PRNGKey(seed))
+    params = policy.init(init_key, ObsNorm.fit(obs, config.obs_std_min))
+    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                      optax.adam(config.learning_rate))
+    state = TrainingState(params, opt.init(params), loop_key)
+
+    def update(s: TrainingState, _):
+        key, k = jax.random.split(s.key)
+        loss, g = jax.value_and_grad(
+            lambda p: bc_loss(policy, p, obs, actions, k, config.samples))(s.params)
+        upd, opt_state = opt.update(g, s.opt_state, s.params)
+        return TrainingState(optax.apply_updates(s.params, upd), opt_state, key), (
+            loss, optax.global_norm(g))
+
+    @jax.jit
+    def chunk(s: TrainingState):
+        return jax.lax.scan(update, s, None, length=config.chunk)
+
+    done = 0
+    act = policy.act
+    while done < config.updates and not ctx.should_stop(0):
+        state, (loss, gnorm) = chunk(state)
+        done += config.chunk
+        ctx.report(Policy(act, state.params), env_steps=0,
+                   metrics={"train/loss": loss[-1], "grad/norm_raw": gnorm[-1],
+                            "train/updates": done})
+    return TrainResult(Policy(act, state.params), env_steps=0,
+                       metrics={"train/updates": done})

@@ -1,0 +1,1 @@
+"""Building blocks shared by methods (policy network, normalizer, BC loss)."""

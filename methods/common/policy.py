@@ -1,0 +1,81 @@
+"""The paper's policy (A.5): MLP 512-256 with swish, lecun-uniform init, and a tanh-Gaussian
+head (std = softplus(s) + 0.001, action = tanh(loc + std * eps), reparameterized); built
+from brax's own network and distribution classes. Observations are normalized with fixed
+statistics (mean, std with variance clipped to [std_min^2, 1e6], output clipped to +/-5, as
+the original code's normalizer, which used std_min = 1e-3)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+from brax.training import distribution, networks
+from flax import linen
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsNorm:
+    mean: jax.Array
+    std: jax.Array
+
+    @staticmethod
+    def fit(obs: jax.Array, std_min: float = 1e-3) -> "ObsNorm":
+        """Statistics of `obs` (..., D). `std_min` floors the std: one demo often barely
+        varies some features, and dividing test-time deviations by that tiny spread throws
+        the network far outside what it was fit on."""
+        obs = jnp.reshape(obs, (-1, obs.shape[-1]))
+        var = jnp.clip(jnp.var(obs, axis=0), std_min ** 2, 1e6)
+        return ObsNorm(mean=jnp.mean(obs, axis=0), std=jnp.sqrt(var))
+
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        return jnp.clip((obs - self.mean) / self.std, -5.0, 5.0)
+
+
+jax.tree_util.register_dataclass(ObsNorm, data_fields=["mean", "std"], meta_fields=[])
+
+
+@dataclasses.dataclass(frozen=True)
+class TanhGaussianPolicy:
+    obs_size: int
+    action_size: int
+    hidden: Sequence[int] = (512, 256)
+
+    @property
+    def _dist(self):
+        return distribution.NormalTanhDistribution(event_size=self.action_size, min_std=0.001)
+
+    @property
+    def _net(self):
+        return networks.make_policy_network(
+            self._dist.param_size, self.obs_size, hidden_layer_sizes=tuple(self.hidden),
+            activation=linen.swish)
+
+    def init(self, key: jax.Array, norm: ObsNorm) -> dict:
+        return {"net": self._net.init(key), "norm": norm}
+
+    def logits(self, params: dict, obs: jax.Array) -> jax.Array:
+        return self._net.apply(None, params["net"], params["norm"](obs))
+
+    def sample(self, params: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
+        """Reparameterized tanh-Gaussian sample (differentiable in params and obs)."""
+        d = self._dist
+        return d.postprocess(d.sample_no_postprocessing(self.logits(params, obs), key))
+
+    def mode(self, params: dict, obs: jax.Array) -> jax.Array:
+        return self._dist.mode(self.logits(params, obs))
+
+    def act(self, params: dict, obs: jax.Array, key: jax.Array, deterministic: bool):
+        """bench.api.Policy 'jax' signature."""
+        return self.mode(params, obs) if deterministic else self.sample(params, obs, key)
+
+
+def bc_loss(policy: TanhGaussianPolicy, params: dict, obs: jax.Array, actions: jax.Array,
+            key: jax.Array, samples: int) -> jax.Array:
+    """The original BC warm start: squared error of reparameterized samples to the demo
+    actions, summed over action dims, averaged over samples and demo steps.
+    obs (N, obs_dim) pairs with actions (N, act_dim): o_t with a_t (state BEFORE action)."""
+    keys = jax.random.split(key, samples)
+    a = jax.vmap(lambda k: jax.vmap(policy.sample, in_axes=(None, 0, 0))(
+        params, obs, jax.random.split(k, obs.shape[0])))(keys)
+    return jnp.mean(jnp.sum((a - actions[None]) ** 2, axis=-1))

@@ -1,0 +1,100 @@
+"""A built task: the unwrapped environment plus the functions the harness needs around it."""
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+from brax import envs as brax_envs
+from brax.envs.base import Env, State, Wrapper
+
+from tasks.registry import TaskSpec, get_spec
+
+
+def brax_matched_state(pipeline_state) -> jax.Array:
+    """[pos(nb*3), rot(nb*4), vel(nb*3), ang(nb*3)] from the world-frame transforms."""
+    x, xd = pipeline_state.x, pipeline_state.xd
+    return jnp.concatenate([x.pos.ravel(), x.rot.ravel(), xd.vel.ravel(), xd.ang.ravel()])
+
+
+class Canonical(Wrapper):
+    """Rewards and done flags as float32 arrays (some brax envs return Python floats), so
+    states have one fixed pytree type and scan carries stay stable."""
+
+    @staticmethod
+    def _fix(s: State) -> State:
+        return s.replace(reward=jnp.asarray(s.reward, jnp.float32),
+                         done=jnp.asarray(s.done, jnp.float32))
+
+    def reset(self, rng: jax.Array) -> State:
+        return self._fix(self.env.reset(rng))
+
+    def step(self, state: State, action: jax.Array) -> State:
+        return self._fix(self.env.step(state, action))
+
+
+def build_env(spec: TaskSpec) -> Env:
+    return Canonical(_build_env(spec))
+
+
+def _build_env(spec: TaskSpec) -> Env:
+    kind, _, name = spec.env.partition(":")
+    kwargs = spec.kwargs()
+    if kind == "brax":
+        return brax_envs.get_environment(name, backend=spec.backend, **kwargs)
+    if kind == "ildbench" and name == "pointmass":
+        from tasks.pointmass import PointMass
+        return PointMass(**kwargs)
+    if kind == "ildbench" and name == "acrobot":
+        from tasks.acrobot import Acrobot
+        return Acrobot(backend=spec.backend, **kwargs)
+    raise ValueError(f"task {spec.name!r}: cannot build env {spec.env!r}")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Task:
+    """A task ready to run. `env` is always the *unwrapped* environment (no auto-reset,
+    no episode wrapper): episodes are exactly `episode_length` steps driven by the caller."""
+
+    spec: TaskSpec
+    env: Env
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def episode_length(self) -> int:
+        return self.spec.episode_length
+
+    @functools.cached_property
+    def obs_size(self) -> int:
+        # brax's env.observation_size runs reset() op by op (seconds for humanoid); an
+        # abstract trace gives the same shape in milliseconds.
+        return int(jax.eval_shape(self.env.reset, jax.random.PRNGKey(0)).obs.shape[-1])
+
+    @property
+    def action_size(self) -> int:
+        return int(self.env.action_size)
+
+    def matched_state(self, state: State) -> jax.Array:
+        """The vector imitation losses compare, for one (unbatched) env state."""
+        own = getattr(self.env, "matched_state", None)
+        if own is not None:
+            return own(state.pipeline_state)
+        return brax_matched_state(state.pipeline_state)
+
+    @functools.cached_property
+    def state_size(self) -> int:
+        if getattr(self.env, "matched_state", None) is not None:
+            s = jax.eval_shape(self.env.reset, jax.random.PRNGKey(0))
+            return int(jax.eval_shape(self.matched_state, s).shape[0])
+        return 13 * int(self.env.sys.num_links())  # brax_matched_state's layout
+
+
+@functools.lru_cache(maxsize=None)
+def make_task(name: str) -> Task:
+    """Build (once per process) the task registered under `name`."""
+    spec = get_spec(name)
+    return Task(spec=spec, env=build_env(spec))

@@ -1,0 +1,219 @@
+"""Experts and demos: `ildbench expert train --task T` and `ildbench expert demo --task T`.
+
+Experts are brax PPO policies trained on the task's own unwrapped env with 128-step
+episodes (pointmass has an analytic PD expert instead). A trained expert is stored as
+tasks/data/<task>_expert.msgpack (observation normalizer + policy parameters, a few KB)
+with tasks/data/<task>_expert.json (PPO config, seed, env steps, wall-clock, hardware).
+Training is deterministic for a given seed on CPU, so an interrupted training is rerun
+from its seed.
+
+A demo file is made by rolling the deterministic expert from `rollouts` initial states,
+dropping episodes that terminated early, and keeping the best `keep` by return (index 0
+is the one-demo protocol's demo), as the original release did. The references R_expert
+(expert, deterministic) and R_random (uniform random actions) are measured by the shared
+evaluator on REFERENCE_EPISODES fixed episodes and stored in the demo.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from tasks.core import Task, make_task
+from tasks.demo import FORMAT_VERSION, Demo, library_versions, save_demo
+from tasks.registry import DATA_DIR
+
+_print = functools.partial(print, flush=True)
+REFERENCE_EPISODES = 128
+REFERENCE_SEED = 0
+
+# PPO settings per task (brax PPO keyword arguments). Base: the ILD release's expert
+# recipe (episode_length 128, lr 3e-4, entropy 1e-2, discount 0.95, reward scaling 10,
+# normalized observations) with batch sizes raised for CPU throughput.
+_PPO_BASE = dict(num_timesteps=5_000_000, episode_length=128, num_envs=256, batch_size=256,
+                 num_minibatches=8, num_updates_per_batch=4, unroll_length=10,
+                 learning_rate=3e-4, entropy_cost=1e-2, discounting=0.95, reward_scaling=10.0,
+                 normalize_observations=True, num_evals=20, num_eval_envs=64)
+PPO_CONFIGS: dict[str, dict] = {
+    "inverted_pendulum": dict(_PPO_BASE, num_timesteps=1_000_000, discounting=0.97),
+    "reacher": dict(_PPO_BASE, num_timesteps=5_000_000, reward_scaling=5.0,
+                    entropy_cost=1e-3),
+    "acrobot": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.97,
+                    reward_scaling=1.0),
+    "swimmer": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.995),
+    "hopper": dict(_PPO_BASE, num_timesteps=10_000_000),
+    "walker2d": dict(_PPO_BASE, num_timesteps=10_000_000),
+    "ant": dict(_PPO_BASE, num_timesteps=10_000_000),
+    "humanoid": dict(_PPO_BASE, num_timesteps=20_000_000),
+}
+
+
+def expert_paths(task: str) -> tuple[str, str]:
+    base = os.path.join(DATA_DIR, f"{task}_expert")
+    return base + ".msgpack", base + ".json"
+
+
+def _ppo_networks(task: Task):
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
+    return ppo_networks.make_ppo_networks(
+        task.obs_size, task.action_size,
+        preprocess_observations_fn=running_statistics.normalize)
+
+
+def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None,
+                 log=_print) -> str:
+    """Train a PPO expert and store it; returns the parameter file path."""
+    from brax.training.agents.ppo import train as ppo
+
+    if task_name not in PPO_CONFIGS:
+        raise ValueError(f"no PPO expert recipe for task {task_name!r}; recipes exist for "
+                         f"{', '.join(sorted(PPO_CONFIGS))} (pointmass has an analytic expert)")
+    task = make_task(task_name)
+    cfg = dict(PPO_CONFIGS[task_name])
+    if num_timesteps is not None:
+        cfg["num_timesteps"] = int(num_timesteps)
+    t0 = time.perf_counter()
+
+    def progress(step, metrics):
+        el = time.perf_counter() - t0
+        left = el / max(step, 1) * (cfg["num_timesteps"] - step) if step else float("nan")
+        log(f"[{task_name}] steps {step:>10,d}/{cfg['num_timesteps']:,d}  eval return "
+            f"{float(metrics.get('eval/episode_reward', np.nan)):9.2f}  elapsed {el:6.0f}s  "
+            f"left ~{left:6.0f}s")
+
+    make_policy, params, _ = ppo.train(environment=task.env, seed=seed, progress_fn=progress,
+                                       **cfg)
+    wall = time.perf_counter() - t0
+    param_path, meta_path = expert_paths(task_name)
+    os.makedirs(DATA_DIR, exist_ok=True)
+    state = serialization.to_state_dict({"normalizer": params[0], "policy": params[1]})
+    with open(param_path, "wb") as f:
+        f.write(serialization.msgpack_serialize(jax.tree.map(np.asarray, state)))
+    from bench.runner import machine
+    with open(meta_path, "w") as f:
+        json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "ppo": cfg,
+                   "wall_clock_s": round(wall, 1), "machine": machine(),
+                   "versions": library_versions()}, f, indent=1, sort_keys=True)
+    log(f"[{task_name}] expert saved to {param_path} ({wall:.0f}s)")
+    return param_path
+
+
+@functools.lru_cache(maxsize=None)
+def expert_policy(task_name: str):
+    """The task's expert as a bench.api.Policy (deterministic = its mode)."""
+    from bench.api import Policy
+
+    if task_name == "pointmass":
+        return Policy(act=_pd_act, params=())
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    task = make_task(task_name)
+    param_path, _ = expert_paths(task_name)
+    if not os.path.exists(param_path):
+        raise FileNotFoundError(f"task {task_name!r} has no expert at {param_path}; train one "
+                                f"with `ildbench expert train --task {task_name}`")
+    nets = _ppo_networks(task)
+    template = {"normalizer": running_statistics.init_state(
+        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
+        "policy": nets.policy_network.init(jax.random.PRNGKey(0))}
+    with open(param_path, "rb") as f:
+        restored = serialization.msgpack_restore(f.read())
+    params = serialization.from_state_dict(template, restored)
+    inference = ppo_networks.make_inference_fn(nets)
+    return Policy(act=_PPOAct(inference), params=(params["normalizer"], params["policy"]))
+
+
+def _pd_act(params, obs, key, deterministic):
+    from tasks.pointmass import pd_expert
+    return pd_expert(obs)
+
+
+class _PPOAct:
+    """Hashable wrapper so the evaluator's compile cache keys on one object per task."""
+
+    def __init__(self, inference):
+        self._inference = inference
+
+    def __call__(self, params, obs, key, deterministic):
+        return self._inference(params, deterministic=deterministic)(obs, key)[0]
+
+
+def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> dict:
+    """Roll `policy` from env.reset(key) for each key; arrays as in the demo format."""
+    env, T = task.env, task.episode_length
+
+    def episode(key):
+        k_reset, k_act = jax.random.split(key)
+        s0 = env.reset(k_reset)
+
+        def body(s, k):
+            a = jnp.clip(policy.act(policy.params, s.obs, k, deterministic), -1.0, 1.0)
+            s2 = env.step(s, a)
+            return s2, (s.obs, task.matched_state(s), a, s2.reward, s2.done)
+
+        sT, (obs, states, actions, rewards, dones) = jax.lax.scan(
+            body, s0, jax.random.split(k_act, T))
+        obs = jnp.concatenate([obs, sT.obs[None]])
+        states = jnp.concatenate([states, task.matched_state(sT)[None]])
+        return dict(obs=obs, states=states, actions=actions, rewards=rewards, dones=dones)
+
+    out = jax.jit(jax.vmap(episode))(keys)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,
+              log=_print) -> str:
+    """Roll the expert, keep the best `keep` non-terminated episodes, measure references,
+    and write tasks/data/<demo file>. Returns the path."""
+    from bench.evaluator import EvalConfig, Evaluator, random_policy
+
+    task = make_task(task_name)
+    if task.spec.demo is None:
+        raise ValueError(f"task {task_name!r} names no demo file in tasks/registry.py; add "
+                         f"demo='{task_name}.npz' to its TaskSpec first")
+    policy = expert_policy(task_name)
+    # init_keys: one per candidate episode; env.reset(init_key) is the demo's s_0.
+    init_keys = jax.random.split(jax.random.PRNGKey(seed), rollouts)
+    # The rollout splits each key into (reset, action) keys: store the reset key.
+    reset_keys = np.asarray(jax.vmap(lambda k: jax.random.split(k)[0])(init_keys))
+    r = rollout(task, policy, init_keys)
+    ok = ~r["dones"].astype(bool).any(axis=1)
+    returns = r["rewards"].sum(1)
+    order = [i for i in np.argsort(-returns) if ok[i]][:keep]
+    if not order:
+        raise RuntimeError(f"task {task_name!r}: every expert rollout terminated early; the "
+                           "expert is not good enough for a demo")
+    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
+    r_expert = ev.evaluate(policy, REFERENCE_SEED).mean_return
+    r_random = ev.evaluate(random_policy(task.action_size), REFERENCE_SEED).mean_return
+    _, meta_path = expert_paths(task_name)
+    expert_meta = {"source": "analytic PD controller"} if task_name == "pointmass" else {
+        "source": "brax PPO", **{k: v for k, v in json.load(open(meta_path)).items()
+                                 if k in ("seed", "ppo", "wall_clock_s")}}
+    demo = Demo(
+        obs=r["obs"][order].astype(np.float32), states=r["states"][order].astype(np.float32),
+        actions=r["actions"][order].astype(np.float32),
+        rewards=r["rewards"][order].astype(np.float32),
+        init_keys=reset_keys[order].astype(np.uint32),
+        returns=r["rewards"][order].sum(1).astype(np.float32),
+        meta={"format_version": FORMAT_VERSION, "task": task_name,
+              "backend": task.spec.backend, "episode_length": task.episode_length,
+              "versions": library_versions(),
+              "expert": {**expert_meta, "demo_seed": seed, "rollouts": rollouts,
+                         "kept": len(order), "deterministic": True},
+              "reference": {"expert_return": r_expert, "random_return": r_random,
+                            "num_episodes": REFERENCE_EPISODES, "eval_seed": REFERENCE_SEED,
+                            "deterministic": True}})
+    path = task.spec.demo_path
+    save_demo(path, demo)
+    log(f"[{task_name}] demo saved to {path}: {len(order)} of {rollouts} rollouts kept "
+        f"(top return {demo.returns[0]:.2f}); R_expert {r_expert:.2f}, R_random {r_random:.2f}")
+    return path

@@ -1,0 +1,66 @@
+"""The command line: errors before work, no partial records, run -> leaderboard."""
+import os
+
+import pytest
+
+from bench.cli import main
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["run", "--method", "bc", "--task", "hoper", "--budget", "10s"],
+     "unknown task 'hoper'; valid tasks: acrobot, ant"),
+    (["run", "--method", "ild2", "--task", "pointmass", "--budget", "10s"],
+     "unknown method 'ild2'; valid methods: bc"),
+    (["run", "--method", "bc", "--task", "pointmass", "--budget", "0s"],
+     "budget seconds must be > 0"),
+    (["run", "--method", "bc", "--task", "pointmass", "--budget", "soon"],
+     "cannot read budget 'soon'"),
+    (["run", "--method", "bc", "--task", "pointmass", "--budget-steps", "-1"],
+     "budget env steps must be > 0"),
+    (["run", "--method", "bc", "--task", "pointmass"], "give a budget"),
+    (["run", "--method", "bc", "--task", "pointmass", "--budget", "5s", "--set", "updates=0"],
+     "updates must be >= 1"),
+    (["run", "--method", "bc", "--task", "pointmass", "--budget", "5s", "--set", "lr"],
+     "--set expects key=value"),
+    (["run", "--method", "bc", "--task", "hopper", "--budget", "5s"],
+     "task 'hopper' has no demo yet"),
+    (["sweep", "--methods", "bc", "--tasks", "pointmass", "nope", "--budget", "5s"],
+     "unknown task 'nope'"),
+])
+def test_bad_input_is_a_clear_error_and_writes_nothing(argv, match, capsys, tmp_path):
+    store = str(tmp_path / "runs")
+    code, out, err = _run(capsys, *argv, "--store", store)
+    assert code == 2
+    assert match in err
+    assert not os.path.exists(store)
+
+
+def test_run_then_leaderboard(capsys, tmp_path):
+    store, out_dir = str(tmp_path / "runs"), str(tmp_path / "results")
+    args = ["--method", "bc", "--task", "pointmass", "--budget", "60s", "--set", "updates=200",
+            "--eval-episodes", "8", "--store", store]
+    code, out, _ = _run(capsys, "run", *args)
+    assert code == 0 and "ok, final return" in out
+    code, out, _ = _run(capsys, "run", *args)
+    assert "already finished (ok), skipped" in out
+    code, out, _ = _run(capsys, "leaderboard", "--store", store, "--out", out_dir)
+    assert code == 0 and "| pointmass | bc" in out.replace("  ", " ").replace("  ", " ")
+    assert os.path.exists(os.path.join(out_dir, "leaderboard.csv"))
+    code, out, _ = _run(capsys, "sweep", "--methods", "bc", "--tasks", "pointmass", "--seeds",
+                        "2", "--dry-run", "--budget", "60s", "--set", "updates=200",
+                        "--eval-episodes", "8", "--store", store)
+    lines = [l for l in out.splitlines() if "pointmass" in l]
+    assert len(lines) == 2 and lines[0].endswith("done") and lines[1].endswith("to run")
+
+
+def test_listing_commands(capsys):
+    code, out, _ = _run(capsys, "methods")
+    assert code == 0 and "bc" in out and "demo states, demo actions" in out
+    code, out, _ = _run(capsys, "tasks")
+    assert code == 0 and "pointmass" in out and "acrobot" in out

@@ -1,0 +1,32 @@
+"""Leaderboard aggregation on hand-made records."""
+import pytest
+
+from bench import leaderboard as lb
+
+
+def _rec(store, rid, method, seed, status, norm, ret=None):
+    store.write({"run_id": rid, "task": "pointmass", "method": method, "seed": seed,
+                 "status": status, "final_normalized": norm, "final_return": ret,
+                 "uses": {"demo_states": True}, "reference_method": False,
+                 "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                            "evals": 10}, "train_s": 1.0})
+
+
+def test_mean_std_and_seed_counts(store):
+    _rec(store, "a", "m", 0, "ok", 0.5, 1.0)
+    _rec(store, "b", "m", 1, "ok", 0.7, 3.0)
+    _rec(store, "c", "m", 2, "diverged", None)   # never evaluated: counts as 0.0
+    _rec(store, "d", "m", 3, "failed", None)     # not averaged, only counted
+    board = lb.leaderboard(store)
+    row = board.iloc[0]
+    assert row.seeds == 3 and row.failed == 1 and row.diverged == 1
+    assert row.normalized_mean == pytest.approx(0.4)
+    assert row.normalized_std == pytest.approx(0.36055512754, rel=1e-9)  # std(0.5, 0.7, 0)
+    assert row.return_mean == pytest.approx(2.0)
+    md = lb.to_markdown(board)
+    assert "0.400 ± 0.361" in md and "demo states" in md
+
+
+def test_empty_store(store):
+    assert lb.leaderboard(store).empty
+    assert "no finished runs" in lb.to_markdown(lb.leaderboard(store))

@@ -1,0 +1,108 @@
+"""Task and method registries: contents, duplicates, unknown names, config building."""
+import dataclasses
+
+import pytest
+
+from bench import plugins
+from bench.api import MethodSpec, Uses
+from bench.plugins import ConfigError, UnknownMethodError, build_config, get_method
+from tasks import TASKS, TaskSpec, UnknownTaskError, get_spec, register
+
+PAPER_TASKS = {"ant", "hopper", "humanoid", "reacher", "walker2d", "swimmer",
+               "inverted_pendulum", "acrobot"}
+
+
+def test_registry_holds_the_paper_tasks_and_pointmass():
+    assert PAPER_TASKS | {"pointmass"} <= set(TASKS)
+    for spec in TASKS.values():
+        assert spec.episode_length == 128
+        assert spec.backend in ("generalized", "positional", "spring", "analytic")
+
+
+def test_reregistering_a_task_raises():
+    with pytest.raises(ValueError, match="already registered"):
+        register(TASKS["hopper"])
+
+
+def test_unknown_task_lists_valid_names():
+    with pytest.raises(UnknownTaskError, match="unknown task 'hoper'.*hopper"):
+        get_spec("hoper")
+
+
+def test_specs_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TASKS["hopper"].backend = "mjx"
+
+
+def test_bc_is_registered_with_its_declaration():
+    bc = get_method("bc")
+    assert bc.uses == Uses(demo_states=True, demo_actions=True)
+    assert bc.uses.describe() == "demo states, demo actions"
+
+
+def test_unknown_method_lists_valid_names():
+    with pytest.raises(UnknownMethodError, match="unknown method 'bcc'.*bc"):
+        get_method("bcc")
+
+
+def _fake_spec(name):
+    @dataclasses.dataclass(frozen=True)
+    class Cfg:
+        lr: float = 1e-3
+    return MethodSpec(name=name, train=lambda *a: None, config_cls=Cfg, uses=Uses())
+
+
+def test_duplicate_method_raises():
+    with pytest.raises(ValueError, match="registered twice"):
+        plugins.register(_fake_spec("bc"), source="test")
+
+
+class _EntryPoint:
+    def __init__(self, name):
+        self.name, self.value = name, "extpkg:METHOD"
+
+    def load(self):
+        return _fake_spec(self.name)
+
+
+def _fresh_registry_with_entry_point(monkeypatch, name):
+    monkeypatch.setattr(plugins, "_REGISTRY", {})
+    monkeypatch.setattr(plugins, "_SOURCES", {})
+    monkeypatch.setattr(plugins, "_loaded", False)
+    monkeypatch.setattr(plugins.metadata, "entry_points", lambda group: [_EntryPoint(name)])
+
+
+def test_entry_point_methods_are_discovered(monkeypatch):
+    _fresh_registry_with_entry_point(monkeypatch, "extmethod")
+    found = plugins.all_methods()
+    assert "extmethod" in found and "bc" in found
+    assert "entry point" in plugins._SOURCES["extmethod"]
+
+
+def test_entry_point_duplicating_an_in_repo_name_raises(monkeypatch):
+    _fresh_registry_with_entry_point(monkeypatch, "bc")
+    with pytest.raises(ValueError, match="'bc' is registered twice"):
+        plugins.all_methods()
+
+
+def test_config_layers_and_coercion():
+    bc = get_method("bc")
+    cfg = build_config(bc, "pointmass", "cpu", {"updates": "300", "hidden": "64,32"})
+    assert cfg.updates == 300 and cfg.hidden == (64, 32)
+    assert build_config(bc, "pointmass").learning_rate == 1e-3  # the paper's default
+
+
+@pytest.mark.parametrize("overrides,match", [
+    ({"lerning_rate": "1"}, "no config field 'lerning_rate'"),
+    ({"updates": "many"}, "expects int"),
+    ({"updates": "0"}, "updates must be >= 1"),
+    ({"learning_rate": "-1"}, "learning_rate must be > 0"),
+])
+def test_invalid_config_is_a_clear_error(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        build_config(get_method("bc"), "pointmass", None, overrides)
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match="no preset 'gpu'"):
+        build_config(get_method("bc"), "pointmass", "gpu")

@@ -1,0 +1,175 @@
+"""Budgeted runs, records, resume, determinism, divergence and failure accounting."""
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bench import plugins
+from bench.api import MethodSpec, Policy, TrainResult, Uses
+from bench.budget import Budget, BudgetError, parse_seconds
+from bench.evaluator import EvalConfig, Evaluator
+from bench.runner import RunContext, RunRequest, execute, prepare
+from tasks import make_task
+
+FAST_EVAL = EvalConfig(num_episodes=8)
+
+
+@dataclasses.dataclass(frozen=True)
+class ToyConfig:
+    gain: float = 2.0
+    nan_after: int = -1
+    crash: bool = False
+
+
+def _pd(params, obs, key, deterministic):
+    return jnp.clip(-params * obs[..., :1] - obs[..., 1:], -1, 1)
+
+
+def toy_train(task, demo, config, ctx, seed):
+    """Steps 100 env steps per iteration until the budget is spent; reports each time."""
+    steps, it = 0, 0
+    gain = jnp.asarray(config.gain)
+    while not ctx.should_stop(steps):
+        it += 1
+        steps += 100
+        if config.crash and it == 3:
+            raise RuntimeError("boom")
+        if config.nan_after >= 0 and it > config.nan_after:
+            gain = jnp.asarray(jnp.nan)
+        ctx.report(Policy(_pd, gain), steps, {"train/loss": 1.0 / it})
+    return TrainResult(Policy(_pd, gain), env_steps=steps)
+
+
+@pytest.fixture
+def toy(monkeypatch):
+    spec = MethodSpec(name="toy", train=toy_train, config_cls=ToyConfig, uses=Uses())
+    plugins.all_methods()
+    monkeypatch.setitem(plugins._REGISTRY, "toy", spec)
+    monkeypatch.setitem(plugins._SOURCES, "toy", "test")
+    return spec
+
+
+def _req(method="toy", steps=1000, seed=0, **over):
+    return RunRequest(method=method, task="pointmass", seed=seed,
+                      budget=Budget(env_steps=steps, evals=5), overrides=over, eval=FAST_EVAL)
+
+
+def test_step_budget_is_enforced_and_curve_recorded(toy, store):
+    rec, skipped = execute(prepare(_req()), store, log=lambda s: None)
+    assert not skipped and rec["status"] == "ok"
+    assert rec["env_steps"] == 1000
+    assert [p["env_steps"] for p in rec["curve"]] == [200, 400, 600, 800, 1000, 1000]
+    assert rec["final_normalized"] == rec["curve"][-1]["normalized"]
+    assert rec["final_from"] == "final policy"
+
+
+def test_record_round_trip_and_fields(toy, store):
+    rec, _ = execute(prepare(_req()), store, log=lambda s: None)
+    with open(store.path(rec["run_id"])) as f:
+        assert json.load(f) == json.loads(json.dumps(rec))
+    for key in ("method", "task", "seed", "config", "versions", "git_revision", "machine",
+                "budget", "curve", "final_return", "final_normalized", "compile_s", "status",
+                "uses", "train_s", "env_steps", "demo", "references"):
+        assert key in rec, key
+    assert rec["config"] == {"gain": 2.0, "nan_after": -1, "crash": False}
+
+
+def test_resume_skips_finished_cells(toy, store):
+    p = prepare(_req())
+    rec, skipped = execute(p, store, log=lambda s: None)
+    mtime = os.path.getmtime(store.path(p.run_id))
+    again, skipped = execute(prepare(_req()), store, log=lambda s: None)
+    assert skipped and again == rec and os.path.getmtime(store.path(p.run_id)) == mtime
+
+
+def test_run_id_is_a_content_hash(toy):
+    base = prepare(_req()).run_id
+    assert prepare(_req()).run_id == base
+    assert prepare(_req(seed=1)).run_id != base
+    assert prepare(_req(steps=2000)).run_id != base
+    assert prepare(_req(gain="3")).run_id != base
+
+
+def test_divergence_is_recorded_with_the_last_valid_evaluation(toy, store):
+    rec, _ = execute(prepare(_req(nan_after=4)), store, log=lambda s: None)
+    assert rec["status"] == "diverged" and "non-finite parameters" in rec["message"]
+    assert rec["final_from"] == "last valid evaluation"
+    assert rec["final_return"] == rec["curve"][-1]["return"]
+    assert rec["curve"][-1]["env_steps"] == 400
+
+
+def test_a_failed_run_is_recorded_and_leaves_finished_records_alone(toy, store):
+    good, _ = execute(prepare(_req()), store, log=lambda s: None)
+    before = open(store.path(good["run_id"])).read()
+    rec, _ = execute(prepare(_req(crash=True)), store, log=lambda s: None)
+    assert rec["status"] == "failed" and "RuntimeError: boom" in rec["message"]
+    assert open(store.path(good["run_id"])).read() == before
+    assert store.finished(rec["run_id"]) is None  # a failed cell is re-run on resume
+
+
+def test_evaluation_does_not_count_against_the_budget():
+    class SlowEvaluator(Evaluator):
+        def evaluate(self, policy, seed):
+            time.sleep(0.5)
+            return super().evaluate(policy, seed)
+
+    ctx = RunContext(Budget(seconds=100), SlowEvaluator(make_task("pointmass"), FAST_EVAL), 0)
+    ctx.evaluate(Policy(_pd, jnp.asarray(2.0)), 0)  # compiles + sleeps, all paused
+    assert ctx.elapsed() < 0.25
+
+
+@pytest.mark.parametrize("kw", [dict(seconds=0), dict(env_steps=-5), dict()])
+def test_invalid_budgets(kw):
+    with pytest.raises(BudgetError):
+        Budget(**kw)
+
+
+def test_parse_seconds():
+    assert parse_seconds("300") == 300 and parse_seconds("10m") == 600
+    assert parse_seconds("1.5h") == 5400 and parse_seconds("45s") == 45
+    with pytest.raises(BudgetError, match="cannot read budget"):
+        parse_seconds("ten minutes")
+
+
+def _bc(seed, store):
+    req = RunRequest(method="bc", task="pointmass", seed=seed, budget=Budget(seconds=120),
+                     eval=EvalConfig(num_episodes=16))
+    return execute(prepare(req), store, force=True, log=lambda s: None)[0]
+
+
+def test_bc_learns_pointmass_and_is_deterministic(store, tmp_path):
+    from bench.store import Store
+    a = _bc(0, store)
+    assert a["status"] == "ok" and a["final_normalized"] >= 0.9
+    b = _bc(0, Store(str(tmp_path / "other")))
+    assert b["final_return"] == a["final_return"]  # same seed -> identical on CPU
+    c = _bc(1, store)
+    assert c["final_normalized"] >= 0.9
+    assert c["compile_s"]["train"] >= 0.0 and a["compile_s"]["train"] > 0.0
+
+
+_CACHE_PROBE = """
+import sys, jax, jax.numpy as jnp
+from bench.runner import enable_compilation_cache
+hits = []
+jax.monitoring.register_event_listener(
+    lambda e, **k: hits.append(e) if e == "/jax/compilation_cache/cache_hits" else None)
+enable_compilation_cache(sys.argv[1], min_compile_s=0)
+jax.jit(lambda x: jnp.sin(x) * 3.0 + jnp.arange(7.0))(jnp.ones(7)).block_until_ready()
+print(len(hits))
+"""
+
+
+def test_persistent_compilation_cache_is_reused_across_processes(tmp_path):
+    import subprocess
+    import sys
+    cache = str(tmp_path / "cache")
+    run = lambda: subprocess.run([sys.executable, "-c", _CACHE_PROBE, cache], check=True,
+                                 capture_output=True, text=True).stdout.split()[-1]
+    assert run() == "0" and os.listdir(cache)  # first process compiles and writes
+    assert int(run()) >= 1                      # second process loads from the cache

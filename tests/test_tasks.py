@@ -1,0 +1,108 @@
+"""Task dynamics: hand-computed values, gradients, and the acrobot rebuild."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tasks import TASKS, make_task
+from tasks.core import brax_matched_state
+
+
+def test_pointmass_dynamics_by_hand():
+    env = make_task("pointmass").env.unwrapped
+    s = env.reset(jax.random.PRNGKey(0))
+    s = s.replace(pipeline_state=jnp.array([1.0, 0.0]), obs=jnp.array([1.0, 0.0]))
+    # dt 0.05, m 1, f = 2 * a: v1 = 0 + 0.05 * 2 * 0.5 = 0.05, x1 = 1 + 0.05 * 0 = 1
+    s1 = env.step(s, jnp.array([0.5]))
+    np.testing.assert_allclose(s1.obs, [1.0, 0.05], atol=1e-7)
+    np.testing.assert_allclose(s1.reward, -1.0, atol=1e-7)
+    # x2 = 1 + 0.05 * 0.05 = 1.0025, v2 = 0.05 + 0.05 * 2 * (-1) = -0.05 (action clipped)
+    s2 = env.step(s1, jnp.array([-3.0]))
+    np.testing.assert_allclose(s2.obs, [1.0025, -0.05], atol=1e-7)
+    np.testing.assert_allclose(s2.reward, -1.0025, atol=1e-7)
+
+
+def test_pointmass_gradient_matches_finite_differences():
+    env = make_task("pointmass").env
+    s0 = env.reset(jax.random.PRNGKey(1))
+
+    def final_x(actions):
+        s, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), s0, actions)
+        return s.obs[0]
+
+    a = 0.3 * jnp.ones((10, 1))
+    g = jax.grad(final_x)(a)
+    # x_10 depends on a_t through v: dx_10/da_t = dt * dt * 2 * (10 - 1 - t)
+    expected = 0.05 * 0.05 * 2.0 * (9 - np.arange(10))
+    np.testing.assert_allclose(np.asarray(g)[:, 0], expected, rtol=1e-5, atol=1e-8)
+
+
+def test_acrobot_starts_hanging_and_rewards_by_the_formula():
+    task = make_task("acrobot")
+    s = task.env.reset(jax.random.PRNGKey(0))
+    theta = np.asarray(s.obs[:2])
+    assert abs(abs(theta[0]) - np.pi) < 0.011 and abs(theta[1]) < 0.011
+    s1 = jax.jit(task.env.step)(s, jnp.zeros(1))
+    o = np.asarray(s1.obs)
+    expected = 10 - (o[0] ** 2 + o[1] ** 2) - 1e-3 * (o[2] ** 2 + o[3] ** 2)
+    np.testing.assert_allclose(s1.reward, expected, rtol=1e-5)
+    assert abs(float(s1.reward) - (10 - np.pi ** 2)) < 0.1  # hanging earns ~0.13
+
+
+def test_acrobot_conserves_energy_without_torque():
+    """No contacts, no damping: 128 unactuated steps from a tilted pose keep it bounded
+    (swinging), and the elbow motor moves the second link."""
+    task = make_task("acrobot")
+    env = task.env
+    s = env.reset(jax.random.PRNGKey(0))
+    ps = env.unwrapped.pipeline_init(jnp.array([np.pi - 0.5, 0.0]), jnp.zeros(2))
+    s = s.replace(pipeline_state=ps, obs=env.unwrapped._get_obs(ps))
+    step = jax.jit(env.step)
+    top = []
+    for _ in range(128):
+        s = step(s, jnp.zeros(1))
+        top.append(float(jnp.max(s.pipeline_state.x.pos[:, 2])))
+    assert np.isfinite(top).all()
+    assert max(top) < 2.5 + 1e-3  # never swings above the pivot height when released at 0.5 rad
+    s_t = step(s, jnp.ones(1))
+    assert float(s_t.obs[3]) != pytest.approx(float(step(s, -jnp.ones(1)).obs[3]))
+
+
+def test_matched_state_layout_is_13_per_body():
+    task = make_task("inverted_pendulum")
+    s = task.env.reset(jax.random.PRNGKey(0))
+    nb = s.pipeline_state.x.pos.shape[0]
+    m = task.matched_state(s)
+    assert m.shape == (13 * nb,)
+    np.testing.assert_array_equal(m[: 3 * nb], np.asarray(s.pipeline_state.x.pos).ravel())
+    np.testing.assert_array_equal(m, brax_matched_state(s.pipeline_state))
+
+
+def _grad_through(task_name, horizon):
+    task = make_task(task_name)
+    env = task.env
+    s0 = env.reset(jax.random.PRNGKey(0))
+
+    def loss(actions):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, task.matched_state(s)
+        _, states = jax.lax.scan(body, s0, actions)
+        return jnp.mean(states ** 2)
+
+    a = 0.1 * jnp.ones((horizon, task.action_size))
+    return jax.jit(jax.value_and_grad(loss))(a)
+
+
+def test_a_brax_task_differentiates():
+    v, g = _grad_through("inverted_pendulum", 16)
+    assert np.isfinite(v) and np.isfinite(np.asarray(g)).all()
+    assert np.abs(np.asarray(g)).sum() > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(set(TASKS) - {"pointmass"}))
+def test_every_task_steps_and_differentiates(name):
+    v, g = _grad_through(name, 16)
+    assert np.isfinite(v) and np.isfinite(np.asarray(g)).all()
+    assert np.abs(np.asarray(g)).sum() > 0
