@@ -42,7 +42,7 @@ _PPO_BASE = dict(num_timesteps=5_000_000, episode_length=128, num_envs=256, batc
                  normalize_observations=True, num_evals=20, num_eval_envs=64)
 PPO_CONFIGS: dict[str, dict] = {
     "inverted_pendulum": dict(_PPO_BASE, num_timesteps=1_000_000, discounting=0.97),
-    "reacher": dict(_PPO_BASE, num_timesteps=5_000_000, reward_scaling=5.0,
+    "reacher": dict(_PPO_BASE, num_timesteps=1_500_000, reward_scaling=5.0,
                     entropy_cost=1e-3),
     "acrobot": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.97,
                     reward_scaling=1.0),

@@ -112,7 +112,7 @@ def test_demo_of_another_width_is_rejected(demo, tmp_path):
         load_demo(p, make_task(TASK))
 
 
-@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum"])
+@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher"])
 def test_replaying_demo_actions_reproduces_states(name):
     """State t is BEFORE action t: env.reset(init_key) gives s_0; stepping a_t gives s_{t+1}."""
     task = make_task(name)
