@@ -1,0 +1,91 @@
+"""ILD config. Defaults are the paper's (A.5, Table 2 setting); presets and per-task
+overrides are data beside it."""
+from __future__ import annotations
+
+import dataclasses
+
+LOSSES = ("chamfer", "l2")
+DISTANCES = ("rms", "sq")
+SCHEDULES = ("linear", "constant")
+
+
+@dataclasses.dataclass(frozen=True)
+class ILDConfig:
+    hidden: tuple[int, ...] = (512, 256)
+    """Policy MLP hidden sizes (A.5: 512-256, swish; tanh-Gaussian head)."""
+    num_envs: int = 360
+    """Batch of parallel rollouts per update (A.5: 360 on an A100)."""
+    updates: int = 5000
+    """Policy updates after the BC warm start (A.5: 5000); the budget may stop earlier."""
+    learning_rate: float = 1e-3
+    """Adam learning rate at the start (A.5)."""
+    lr_schedule: str = "linear"
+    """'linear': decay to lr_end over `updates`, as the original intended (its schedule was
+    dead code: the compiled update closed over the first optimizer); 'constant'."""
+    lr_end: float = 1e-5
+    """Final learning rate of the linear schedule (the original's value)."""
+    max_grad_norm: float = 0.3
+    """Global gradient-norm clip (A.5)."""
+    truncation: int = 10
+    """Truncated BPTT window: the state is stop_gradient'ed every `truncation` steps."""
+    loss: str = "chamfer"
+    """'chamfer' (Chamfer-alpha, Eq. 3) or 'l2' (the step-wise ablation)."""
+    alpha: float = 1.0
+    """Deviation factor: multiplies the deviation term (Eq. 3, A.5: 1)."""
+    distance: str = "rms"
+    """'rms' (original code; default, see losses.py) or 'sq' (squared L2, the paper's text)."""
+    tanh_loss: bool = False
+    """Wrap the loss in tanh as the original code did. Off by default: the paper's Eq. 3 has
+    no tanh, and in float32 tanh(L) == 1 exactly for a raw loss L above ~9, so the gradient
+    is exactly zero whenever the policy is far from the demo (e.g. ILD without BC at init;
+    tests/test_ild.py::test_tanh_loss_saturates_to_a_zero_gradient)."""
+    grad_normalization: bool = True
+    """Per-step gradient normalization through the dynamics (the original's stabilizer)."""
+    bc_updates: int = 1000
+    """BC warm-start updates (Alg. 1 line 3; the original ran 1000); 0 disables it."""
+    bc_samples: int = 16
+    """Reparameterized samples per demo state in the BC loss."""
+    obs_std_min: float = 1.0
+    """Observation-normalizer std floor (see methods/bc/config.py for the measurement)."""
+    state_std_min: float = 0.1
+    """Std floor of the matched-state normalizer of the loss: the demo's spread defines the
+    metric, and features it barely varies are not amplified past 1/0.1."""
+    resample_init: bool = True
+    """Draw fresh initial states every update. The original reset once and reused the same
+    states for all 5000 updates; fresh ones fit the test distribution instead."""
+    chunk: int = 1
+    """Updates per jitted call between reports and budget checks (1: metrics every update)."""
+
+    def __post_init__(self):
+        checks = [
+            (self.loss in LOSSES, f"loss must be one of {LOSSES}, got {self.loss!r}"),
+            (self.distance in DISTANCES,
+             f"distance must be one of {DISTANCES}, got {self.distance!r}"),
+            (self.lr_schedule in SCHEDULES,
+             f"lr_schedule must be one of {SCHEDULES}, got {self.lr_schedule!r}"),
+            (self.alpha >= 0, f"alpha must be >= 0, got {self.alpha}"),
+            (self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}"),
+            (bool(self.hidden) and all(h >= 1 for h in self.hidden),
+             f"hidden must be positive layer sizes, got {self.hidden}"),
+        ]
+        for name in ("learning_rate", "lr_end", "max_grad_norm", "obs_std_min",
+                     "state_std_min"):
+            checks.append((getattr(self, name) > 0, f"{name} must be > 0, got "
+                                                     f"{getattr(self, name)}"))
+        for name in ("num_envs", "updates", "truncation", "bc_samples", "chunk"):
+            checks.append((getattr(self, name) >= 1, f"{name} must be >= 1, got "
+                                                      f"{getattr(self, name)}"))
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(msg)
+
+
+PRESETS = {
+    # The paper's scale: for an accelerator (one update is ~11x the cpu preset's work).
+    "paper": {},
+    # Sized so updates are frequent on 2 CPU cores: ~0.7 s per update of B=32 on hopper
+    # (spring), so a 10-minute budget buys several hundred updates.
+    "cpu": {"num_envs": 32},
+}
+
+TASK_OVERRIDES: dict[str, dict] = {}

@@ -1,0 +1,164 @@
+"""ILD training: BC warm start, then policy updates by backpropagating a Chamfer-alpha loss
+between batched stochastic rollouts and the demo through the differentiable physics.
+
+Alignment (the original compared s_0..s_127 with s_1..s_128, one step apart): here the
+rollout's post-step states s_1..s_T are compared with the demo's s_1..s_T (demo.states[:,1:]);
+s_0 is the reset state, which the policy does not choose. BC pairs o_t with a_t.
+"""
+from __future__ import annotations
+
+import time
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from bench.api import Policy, TrainResult
+from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_loss
+from methods.ild.config import ILDConfig
+from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
+
+
+@flax.struct.dataclass
+class TrainingState:
+    params: dict
+    opt_state: optax.OptState
+    key: jax.Array
+    step: jax.Array
+
+
+@flax.struct.dataclass
+class StateNorm:
+    """Normalizer of matched states for the loss: fixed demo statistics, no clipping (a
+    clip would zero the gradient of every feature outside its range)."""
+    mean: jax.Array
+    std: jax.Array
+
+    def __call__(self, s):
+        return (s - self.mean) / self.std
+
+
+def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: StateNorm,
+                      config: ILDConfig):
+    """loss(params, key) over a batch of `num_envs` rollouts of the task's episode length.
+    goals: (K, T, D) normalized demo states s_1..s_T."""
+    env, T, B = task.env, task.episode_length, config.num_envs
+    gn = normalize_grad if config.grad_normalization else (lambda x: x)
+
+    def env_step(params, s, key):
+        a = gn(policy.sample(params, s.obs, key))
+        return gn(env.step(s, a)), a
+
+    def loss_fn(params, key, init_keys):
+        k_act = key
+        s0 = jax.vmap(env.reset)(init_keys)
+
+        def body(s, xs):
+            t, k = xs
+            s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, jax.random.split(k, B))
+            m = jax.vmap(task.matched_state)(s2)
+            cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
+            s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
+            return s2, (m, a)
+
+        _, (ms, acts) = jax.lax.scan(body, s0, (jnp.arange(T), jax.random.split(k_act, T)))
+        x = norm(jnp.swapaxes(ms, 0, 1))  # (B, T, D)
+        if config.loss == "chamfer":
+            per_env = jax.vmap(lambda xb: multi_demo(chamfer_alpha, xb, goals,
+                                                     alpha=config.alpha,
+                                                     distance=config.distance))(x)
+        else:
+            per_env = jax.vmap(lambda xb: multi_demo(stepwise_l2, xb, goals,
+                                                     distance=config.distance))(x)
+        raw = jnp.mean(per_env.loss)
+        loss = jnp.tanh(raw) if config.tanh_loss else raw
+        aux = {"train/loss": loss, "train/loss_raw": raw,
+               "train/coverage": jnp.mean(per_env.coverage),
+               "train/deviation": jnp.mean(per_env.deviation),
+               "train/action_abs": jnp.mean(jnp.abs(acts))}
+        return loss, aux
+
+    return loss_fn
+
+
+def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
+    """Alg. 1 line 3: BC on (o_t, a_t) with its own Adam (same lr and clipping)."""
+    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                      optax.adam(config.learning_rate))
+
+    def update(carry, k):
+        p, o = carry
+        loss, g = jax.value_and_grad(
+            lambda p: bc_loss(policy, p, obs, actions, k, config.bc_samples))(p)
+        upd, o = opt.update(g, o, p)
+        return (optax.apply_updates(p, upd), o), loss
+
+    (params, _), losses = jax.jit(lambda p, k: jax.lax.scan(
+        update, (p, opt.init(p)), jax.random.split(k, config.bc_updates)))(params, key)
+    return params, losses[-1]
+
+
+def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
+    T = task.episode_length
+    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)          # o_0..o_{T-1}
+    demo_states = jnp.asarray(demo.states[:, 1:])                            # s_1..s_T
+    flat = demo_states.reshape(-1, demo_states.shape[-1])
+    norm = StateNorm(mean=flat.mean(0),
+                     std=jnp.sqrt(jnp.clip(flat.var(0), config.state_std_min ** 2, 1e6)))
+    goals = norm(demo_states)
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
+    # init_key: network weights; bc_key: BC sampling noise; loop_key: rollouts' action noise;
+    # reset_key: initial states (fixed for all updates unless resample_init).
+    init_key, bc_key, loop_key, reset_key = jax.random.split(jax.random.PRNGKey(seed), 4)
+    params = policy.init(init_key, ObsNorm.fit(obs, config.obs_std_min))
+    act = policy.act
+
+    if config.bc_updates > 0:
+        actions = jnp.asarray(demo.actions).reshape(-1, task.action_size)
+        params, bc_final = bc_warm_start(policy, params, obs, actions, config, bc_key)
+        ctx.report(Policy(act, params), 0, {"bc/loss": bc_final}, force_eval=True)
+
+    if config.lr_schedule == "linear":
+        lr = optax.linear_schedule(config.learning_rate, config.lr_end, config.updates)
+    else:
+        lr = optax.constant_schedule(config.learning_rate)
+    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
+    loss_fn = make_rollout_loss(task, policy, goals, norm, config)
+    fixed_init = jax.random.split(reset_key, config.num_envs)
+
+    def update(s: TrainingState, _):
+        key, k_roll, k_init = jax.random.split(s.key, 3)
+        init_keys = (jax.random.split(k_init, config.num_envs) if config.resample_init
+                     else fixed_init)
+        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(s.params, k_roll,
+                                                                    init_keys)
+        leaves = jax.tree_util.tree_leaves(g)
+        nonfinite = sum(jnp.sum(~jnp.isfinite(x)) for x in leaves)
+        g = jax.tree.map(lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), g)
+        raw = optax.global_norm(g)
+        upd, opt_state = opt.update(g, s.opt_state, s.params)
+        metrics = {**aux, "grad/norm_raw": raw,
+                   "grad/norm_clipped": jnp.minimum(raw, config.max_grad_norm),
+                   "grad/nonfinite": nonfinite.astype(jnp.float32), "train/lr": lr(s.step)}
+        return TrainingState(optax.apply_updates(s.params, upd), opt_state, key,
+                             s.step + 1), metrics
+
+    chunk = jax.jit(lambda s: jax.lax.scan(update, s, None, length=config.chunk))
+    state = TrainingState(params, opt.init(params), loop_key, jnp.zeros((), jnp.int32))
+    env_steps, done = 0, 0
+    per_update = config.num_envs * T
+    while done < config.updates and not ctx.should_stop(env_steps):
+        t0 = time.perf_counter()
+        state, m = chunk(state)
+        m = jax.device_get(m)
+        dt = time.perf_counter() - t0
+        done += config.chunk
+        env_steps += config.chunk * per_update
+        metrics = {k: float(np.mean(v)) for k, v in m.items()}
+        metrics.update({"train/updates": done, "time/updates_per_s": config.chunk / dt,
+                        "time/env_steps_per_s": config.chunk * per_update / dt})
+        ctx.report(Policy(act, state.params), env_steps, metrics)
+    return TrainResult(Policy(act, state.params), env_steps=env_steps,
+                       metrics={"train/updates": done})

@@ -1,0 +1,218 @@
+"""ILD: hand-computed losses, gradient stability at the extremes, equivalences, learning."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bench.budget import Budget
+from bench.evaluator import EvalConfig
+from bench.runner import RunRequest, execute, prepare
+from methods.common.policy import ObsNorm, TanhGaussianPolicy
+from methods.ild.config import ILDConfig
+from methods.ild.losses import (chamfer_alpha, multi_demo, nearest, normalize_grad,
+                                pairwise_distance, stepwise_l2)
+from methods.ild.train import StateNorm, make_rollout_loss
+from tasks import make_task
+from tasks.demo import load_demo
+
+X = jnp.array([[0.0], [3.0]])
+Y = jnp.array([[0.0], [1.0]])
+
+
+def test_chamfer_by_hand_squared():
+    # deviation: x=0 -> 0, x=3 -> min(9, 4) = 4: mean 2. coverage: y=0 -> 0, y=1 -> 1: 0.5
+    t = chamfer_alpha(X, Y, alpha=1.0, distance="sq")
+    assert (float(t.deviation), float(t.coverage)) == (2.0, 0.5)
+    assert float(chamfer_alpha(X, Y, alpha=5.0, distance="sq").loss) == 0.5 + 5 * 2.0
+    assert float(chamfer_alpha(X, Y, alpha=0.0, distance="sq").loss) == 0.5
+
+
+def test_chamfer_by_hand_rms():
+    # D = 2: d = sqrt(mean_D (x - y)^2). x=(3,4) to y=(0,0): sqrt(25/2)
+    x = jnp.array([[3.0, 4.0], [0.0, 0.0]])
+    y = jnp.array([[0.0, 0.0]])
+    t = chamfer_alpha(x, y, alpha=1.0, distance="rms")
+    np.testing.assert_allclose(t.deviation, np.sqrt(12.5) / 2, rtol=1e-6)
+    np.testing.assert_allclose(t.coverage, 0.0, atol=1e-7)
+
+
+def test_nearest_matches_brute_force():
+    k1, k2 = jax.random.split(jax.random.PRNGKey(0))
+    x, y = jax.random.normal(k1, (128, 40)), jax.random.normal(k2, (128, 40))
+    d = pairwise_distance(x, y, "sq")
+    to_y, to_x = nearest(x, y)
+    np.testing.assert_array_equal(to_y, jnp.argmin(d, 1))
+    np.testing.assert_array_equal(to_x, jnp.argmin(d, 0))
+    t = chamfer_alpha(x, y, 0.7, "rms")
+    brute = pairwise_distance(x, y, "rms")
+    np.testing.assert_allclose(t.loss, brute.min(0).mean() + 0.7 * brute.min(1).mean(),
+                               rtol=1e-6)
+
+
+@pytest.mark.parametrize("distance", ["rms", "sq"])
+def test_gradient_is_finite_when_rollout_equals_demo(distance):
+    y = jax.random.normal(jax.random.PRNGKey(1), (16, 5))
+    g = jax.grad(lambda x: chamfer_alpha(x, y, 1.0, distance).loss)(y)
+    assert np.isfinite(np.asarray(g)).all()
+    np.testing.assert_array_equal(g, 0.0)  # the minimum: zero gradient, not NaN
+
+
+def test_stepwise_l2_and_multi_demo():
+    t = stepwise_l2(X, Y, distance="sq")  # (0 + 4) / 2
+    assert float(t.loss) == 2.0
+    ys = jnp.stack([Y, X])  # the second demo equals the rollout
+    assert float(multi_demo(chamfer_alpha, X, ys, alpha=1.0, distance="sq").loss) == 0.0
+    with pytest.raises(ValueError, match="equal lengths"):
+        stepwise_l2(X, Y[:1])
+
+
+def test_normalize_grad_forward_identity_backward_clipped():
+    x = jnp.array([3.0, 4.0])
+    np.testing.assert_array_equal(normalize_grad(x), x)
+    g = jax.grad(lambda x: jnp.sum(normalize_grad(x) * jnp.array([30.0, 40.0])))(x)
+    np.testing.assert_allclose(g, [0.6, 0.8], rtol=1e-6)  # norm 50 -> 1
+    g = jax.grad(lambda x: jnp.sum(normalize_grad(x) * jnp.array([0.3, 0.4])))(x)
+    np.testing.assert_allclose(g, [0.3, 0.4], rtol=1e-6)  # norm 0.5 < 1: unchanged
+    g = jax.grad(lambda x: jnp.sum(normalize_grad(x) * jnp.array([jnp.nan, 0.5])))(x)
+    np.testing.assert_allclose(g, [0.0, 0.5])  # NaN cotangent -> 0
+    tree = {"f": jnp.ones(2), "i": jnp.array([1, 2])}
+    assert normalize_grad(tree)["i"].dtype == jnp.int32  # int leaves pass through
+
+
+# --- the full rollout loss on pointmass -------------------------------------------------
+
+class _ModePolicy(TanhGaussianPolicy):
+    """Acts with the mode: no sampling, so float32 and float64 see the same actions (JAX
+    draws different numbers from one key at different precisions)."""
+
+    def sample(self, params, obs, key):
+        return self.mode(params, obs)
+
+
+def _setup(config, dtype=jnp.float32, deterministic=False):
+    task = make_task("pointmass")
+    demo = load_demo(task.spec.demo_path, task)
+    if deterministic:  # no reset noise either
+        from tasks.core import Canonical, Task
+        from tasks.pointmass import PointMass
+        task = Task(spec=task.spec, env=Canonical(PointMass(reset_noise_scale=0.0)))
+    ds = jnp.asarray(demo.states[:1, 1:], dtype)
+    flat = ds.reshape(-1, ds.shape[-1])
+    norm = StateNorm(flat.mean(0), jnp.sqrt(jnp.clip(flat.var(0), 0.01, 1e6)))
+    cls = _ModePolicy if deterministic else TanhGaussianPolicy
+    policy = cls(task.obs_size, task.action_size, (32, 32))
+    params = policy.init(jax.random.PRNGKey(0), ObsNorm.fit(jnp.asarray(demo.obs[0])))
+    params = jax.tree.map(lambda x: jnp.asarray(x, dtype), params)
+    loss = make_rollout_loss(task, policy, norm(ds), norm, config)
+    keys = jax.random.split(jax.random.PRNGKey(1), config.num_envs)
+    return loss, params, keys
+
+
+def _cfg(**kw):
+    return dataclasses.replace(ILDConfig(num_envs=4, hidden=(32, 32)), **kw)
+
+
+@pytest.mark.parametrize("kw", [dict(truncation=1), dict(truncation=128), dict(alpha=0.0),
+                                dict(alpha=5.0), dict(loss="l2"), dict(distance="sq"),
+                                dict(grad_normalization=False, tanh_loss=False)])
+def test_rollout_gradient_finite_at_the_extremes(kw):
+    loss, params, keys = _setup(_cfg(**kw))
+    (v, aux), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(params, jax.random.PRNGKey(2),
+                                                                   keys)
+    flat = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(g)])
+    assert np.isfinite(v) and np.isfinite(flat).all() and np.abs(flat).sum() > 0
+
+
+def test_tanh_loss_saturates_to_a_zero_gradient():
+    """Why tanh_loss is off by default: far from the demo the original's tanh(L) is exactly
+    1 in float32 and the gradient exactly 0; without tanh the same point has a gradient."""
+    far = jnp.full((8, 3), 30.0)
+    y = jnp.zeros((8, 3))
+    g_tanh = jax.grad(lambda x: jnp.tanh(chamfer_alpha(x, y).loss))(far)
+    g_raw = jax.grad(lambda x: chamfer_alpha(x, y).loss)(far)
+    assert float(jnp.abs(g_tanh).sum()) == 0.0 and float(jnp.abs(g_raw).sum()) > 0
+
+
+def test_gradient_finite_with_saturated_actions():
+    loss, params, keys = _setup(_cfg())
+    # Push the last layer's bias so every action is tanh(~+20) = +1 (saturated).
+    last = sorted(params["net"]["params"])[-1]
+    b = params["net"]["params"][last]["bias"]
+    params["net"]["params"][last]["bias"] = b.at[: b.shape[0] // 2].set(20.0)
+    (v, aux), g = jax.value_and_grad(loss, has_aux=True)(params, jax.random.PRNGKey(2), keys)
+    assert float(aux["train/action_abs"]) > 0.999
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(g))
+
+
+def test_float32_and_float64_agree():
+    cfg = _cfg(grad_normalization=False)
+    loss32, p32, keys = _setup(cfg, deterministic=True)
+    v32, g32 = jax.value_and_grad(lambda p: loss32(p, jax.random.PRNGKey(2), keys)[0])(p32)
+    with jax.experimental.enable_x64():
+        loss64, p64, keys64 = _setup(cfg, jnp.float64, deterministic=True)
+        v64, g64 = jax.value_and_grad(lambda p: loss64(p, jax.random.PRNGKey(2), keys64)[0])(
+            p64)
+        assert jax.tree_util.tree_leaves(g64)[0].dtype == jnp.float64
+    np.testing.assert_allclose(v32, v64, rtol=1e-4)
+    for a, b in zip(jax.tree_util.tree_leaves(g32), jax.tree_util.tree_leaves(g64)):
+        np.testing.assert_allclose(a, b, rtol=2e-3, atol=1e-5)
+
+
+def test_analytic_gradient_matches_finite_differences():
+    """float64, through 128 steps of pointmass physics and the Chamfer loss, w.r.t. the
+    policy's output bias (one direction, central differences)."""
+    with jax.experimental.enable_x64():
+        cfg = _cfg(grad_normalization=False, truncation=128, distance="sq", tanh_loss=False)
+        loss, params, keys = _setup(cfg, jnp.float64)
+        last = sorted(params["net"]["params"])[-1]
+
+        def f(eps):
+            p = jax.tree.map(lambda x: x, params)
+            b = p["net"]["params"][last]["bias"]
+            p["net"]["params"][last]["bias"] = b.at[0].add(eps)
+            return loss(p, jax.random.PRNGKey(2), keys)[0]
+
+        analytic = jax.grad(f)(0.0)
+        h = 1e-5
+        numeric = (f(h) - f(-h)) / (2 * h)
+        assert abs(float(analytic)) > 1e-6
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-4)
+
+
+def test_truncation_cuts_the_gradient_path():
+    """With truncation 1, the final state depends on earlier actions only through the
+    stop_gradient'ed state: changing the window changes the gradient."""
+    g = {}
+    for trunc in (1, 128):
+        loss, params, keys = _setup(_cfg(truncation=trunc, grad_normalization=False))
+        g[trunc] = jax.grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0])(params)
+    a, b = (np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(g[t])])
+            for t in (1, 128))
+    assert not np.allclose(a, b)
+
+
+def _ild(seed, **over):
+    req = RunRequest(method="ild", task="pointmass", seed=seed,
+                     budget=Budget(env_steps=32 * 128 * 15, evals=3), preset="cpu",
+                     overrides=over, eval=EvalConfig(num_episodes=16))
+    return req
+
+
+def test_ild_learns_pointmass_from_scratch_and_is_deterministic(store, tmp_path):
+    from bench.store import Store
+    rec, _ = execute(prepare(_ild(0, bc_updates=0)), store, log=lambda s: None)
+    assert rec["status"] == "ok" and rec["final_normalized"] >= 0.95
+    assert rec["env_steps"] == 32 * 128 * 15
+    m = rec["train_metrics"]
+    assert m["grad/nonfinite"] == 0 and m["grad/norm_raw"] > 0 and m["train/updates"] == 15
+    again, _ = execute(prepare(_ild(0, bc_updates=0)), Store(str(tmp_path / "b")),
+                       log=lambda s: None)
+    assert again["final_return"] == rec["final_return"]
+
+
+def test_ild_with_bc_warm_start(store):
+    rec, _ = execute(prepare(_ild(1, bc_updates=200)), store, log=lambda s: None)
+    assert rec["status"] == "ok" and rec["final_normalized"] >= 0.95
+    assert rec["curve"][0]["env_steps"] == 0  # the BC warm start is evaluated first
