@@ -47,7 +47,7 @@ PPO_CONFIGS: dict[str, dict] = {
     "acrobot": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.97,
                     reward_scaling=1.0),
     "swimmer": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.995),
-    "hopper": dict(_PPO_BASE, num_timesteps=10_000_000),
+    "hopper": dict(_PPO_BASE, num_timesteps=3_000_000),
     "walker2d": dict(_PPO_BASE, num_timesteps=10_000_000),
     "ant": dict(_PPO_BASE, num_timesteps=10_000_000),
     "humanoid": dict(_PPO_BASE, num_timesteps=20_000_000),

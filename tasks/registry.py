@@ -64,7 +64,7 @@ _TABLE: tuple[TaskSpec, ...] = (
     TaskSpec("swimmer", "brax:swimmer", "generalized",
              "brax swimmer obs (8)", _BRAX_MATCHED, paper_expert_return=4.3),
     TaskSpec("hopper", "brax:hopper", "spring",
-             "brax hopper obs (11)", _BRAX_MATCHED, paper_expert_return=293.0),
+             "brax hopper obs (11)", _BRAX_MATCHED, demo="hopper.npz", paper_expert_return=293.0),
     TaskSpec("walker2d", "brax:walker2d", "spring",
              "brax walker2d obs (17)", _BRAX_MATCHED, paper_expert_return=289.0),
     TaskSpec("ant", "brax:ant", "spring",

@@ -53,6 +53,9 @@ class ILDConfig:
     resample_init: bool = True
     """Draw fresh initial states every update. The original reset once and reused the same
     states for all 5000 updates; fresh ones fit the test distribution instead."""
+    remat: bool = False
+    """Rematerialize each step in the backward pass (jax.checkpoint): less memory, more
+    compute; measured by `python -m methods.ild.benchmark`."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update)."""
 

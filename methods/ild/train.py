@@ -63,7 +63,8 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
             return s2, (m, a)
 
-        _, (ms, acts) = jax.lax.scan(body, s0, (jnp.arange(T), jax.random.split(k_act, T)))
+        step_fn = jax.checkpoint(body) if config.remat else body
+        _, (ms, acts) = jax.lax.scan(step_fn, s0, (jnp.arange(T), jax.random.split(k_act, T)))
         x = norm(jnp.swapaxes(ms, 0, 1))  # (B, T, D)
         if config.loss == "chamfer":
             per_env = jax.vmap(lambda xb: multi_demo(chamfer_alpha, xb, goals,
@@ -81,6 +82,37 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         return loss, aux
 
     return loss_fn
+
+
+def make_update(task, policy, goals, norm, config: ILDConfig, reset_key):
+    """One ILD update as a pure function (TrainingState, _) -> (TrainingState, metrics), for
+    lax.scan; also used by the speed benchmark. Returns (update, optimizer, schedule)."""
+    if config.lr_schedule == "linear":
+        lr = optax.linear_schedule(config.learning_rate, config.lr_end, config.updates)
+    else:
+        lr = optax.constant_schedule(config.learning_rate)
+    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
+    loss_fn = make_rollout_loss(task, policy, goals, norm, config)
+    fixed_init = jax.random.split(reset_key, config.num_envs)
+
+    def update(s: TrainingState, _):
+        key, k_roll, k_init = jax.random.split(s.key, 3)
+        init_keys = (jax.random.split(k_init, config.num_envs) if config.resample_init
+                     else fixed_init)
+        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(s.params, k_roll,
+                                                                    init_keys)
+        leaves = jax.tree_util.tree_leaves(g)
+        nonfinite = sum(jnp.sum(~jnp.isfinite(x)) for x in leaves)
+        g = jax.tree.map(lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), g)
+        raw = optax.global_norm(g)
+        upd, opt_state = opt.update(g, s.opt_state, s.params)
+        metrics = {**aux, "grad/norm_raw": raw,
+                   "grad/norm_clipped": jnp.minimum(raw, config.max_grad_norm),
+                   "grad/nonfinite": nonfinite.astype(jnp.float32), "train/lr": lr(s.step)}
+        return TrainingState(optax.apply_updates(s.params, upd), opt_state, key,
+                             s.step + 1), metrics
+
+    return update, opt, lr
 
 
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
@@ -120,31 +152,7 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
         params, bc_final = bc_warm_start(policy, params, obs, actions, config, bc_key)
         ctx.report(Policy(act, params), 0, {"bc/loss": bc_final}, force_eval=True)
 
-    if config.lr_schedule == "linear":
-        lr = optax.linear_schedule(config.learning_rate, config.lr_end, config.updates)
-    else:
-        lr = optax.constant_schedule(config.learning_rate)
-    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
-    loss_fn = make_rollout_loss(task, policy, goals, norm, config)
-    fixed_init = jax.random.split(reset_key, config.num_envs)
-
-    def update(s: TrainingState, _):
-        key, k_roll, k_init = jax.random.split(s.key, 3)
-        init_keys = (jax.random.split(k_init, config.num_envs) if config.resample_init
-                     else fixed_init)
-        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(s.params, k_roll,
-                                                                    init_keys)
-        leaves = jax.tree_util.tree_leaves(g)
-        nonfinite = sum(jnp.sum(~jnp.isfinite(x)) for x in leaves)
-        g = jax.tree.map(lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), g)
-        raw = optax.global_norm(g)
-        upd, opt_state = opt.update(g, s.opt_state, s.params)
-        metrics = {**aux, "grad/norm_raw": raw,
-                   "grad/norm_clipped": jnp.minimum(raw, config.max_grad_norm),
-                   "grad/nonfinite": nonfinite.astype(jnp.float32), "train/lr": lr(s.step)}
-        return TrainingState(optax.apply_updates(s.params, upd), opt_state, key,
-                             s.step + 1), metrics
-
+    update, opt, lr = make_update(task, policy, goals, norm, config, reset_key)
     chunk = jax.jit(lambda s: jax.lax.scan(update, s, None, length=config.chunk))
     state = TrainingState(params, opt.init(params), loop_key, jnp.zeros((), jnp.int32))
     env_steps, done = 0, 0
