@@ -82,7 +82,8 @@ def _requests(args, methods, tasks, seeds):
     from bench.evaluator import EvalConfig
     from bench.runner import RunRequest
     budget = _budget(args)
-    ev = EvalConfig(num_episodes=args.eval_episodes, deterministic=not args.stochastic_eval)
+    ev = EvalConfig(num_episodes=args.eval_episodes, deterministic=not args.stochastic_eval,
+                    transfer=args.transfer, robustness=args.robustness)
     return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=args.preset,
                        overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos)
             for m, t, s in itertools.product(methods, tasks, seeds)]
@@ -166,6 +167,10 @@ def _add_run_options(p, budget_default=None):
                    help="override a config field (repeatable)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--stochastic-eval", action="store_true")
+    p.add_argument("--transfer", action="store_true",
+                   help="also score the final policy under each perturbation family")
+    p.add_argument("--robustness", action="store_true",
+                   help="also score it on each family's magnitude grid")
     p.add_argument("--num-demos", type=int, default=1, help="demos handed to the method")
     p.add_argument("--force", action="store_true", help="re-run finished cells")
     p.add_argument("--dry-run", action="store_true", help="print the plan only")

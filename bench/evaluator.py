@@ -30,6 +30,11 @@ class EvalConfig:
     """Parallel evaluation episodes."""
     deterministic: bool = True
     """Act with the policy's mode (True) or sample (False)."""
+    transfer: bool = False
+    """Also score the final policy under each perturbation family at its default magnitude
+    (bench/perturb.py); the leaderboard's 'transfer' column."""
+    robustness: bool = False
+    """Also score it on each family's magnitude grid (robustness curves)."""
 
     def __post_init__(self):
         if self.num_episodes < 1:

@@ -15,7 +15,7 @@ from bench.budget import Budget
 from bench.store import Store
 
 COLUMNS = ["task", "method", "uses", "budget", "seeds", "normalized_mean", "normalized_std",
-           "return_mean", "diverged", "failed"]
+           "transfer_mean", "transfer_std", "return_mean", "diverged", "failed"]
 
 
 def records_frame(store: Store) -> pd.DataFrame:
@@ -26,11 +26,12 @@ def records_frame(store: Store) -> pd.DataFrame:
             norm = 0.0
         rows.append({"task": r["task"], "method": r["method"], "seed": r["seed"],
                      "status": r["status"], "normalized": norm, "return": r.get("final_return"),
+                     "transfer": r.get("transfer_normalized"),
                      "uses": Uses(**r["uses"]).describe() + (" (reference)" if r.get(
                          "reference_method") else ""),
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})
     return pd.DataFrame(rows, columns=["task", "method", "seed", "status", "normalized",
-                                       "return", "uses", "budget", "train_s"])
+                                       "return", "transfer", "uses", "budget", "train_s"])
 
 
 def leaderboard(store: Store) -> pd.DataFrame:
@@ -44,6 +45,8 @@ def leaderboard(store: Store) -> pd.DataFrame:
                     "seeds": len(scored),
                     "normalized_mean": scored.normalized.astype(float).mean(),
                     "normalized_std": scored.normalized.astype(float).std(ddof=1),
+                    "transfer_mean": scored.transfer.astype(float).mean(),
+                    "transfer_std": scored.transfer.astype(float).std(ddof=1),
                     "return_mean": scored["return"].astype(float).mean(),
                     "diverged": int((g.status == "diverged").sum()),
                     "failed": int((g.status == "failed").sum())})
@@ -57,9 +60,12 @@ def to_markdown(board: pd.DataFrame) -> str:
     show = board.copy()
     show["normalized"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else f"{m:.3f}"
                           for m, s in zip(show.normalized_mean, show.normalized_std)]
+    show["transfer"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else
+                        ("-" if pd.isna(m) else f"{m:.3f}")
+                        for m, s in zip(show.transfer_mean, show.transfer_std)]
     show["return"] = show.return_mean.map(lambda v: f"{v:.2f}")
-    cols = ["task", "method", "normalized", "return", "seeds", "budget", "uses", "diverged",
-            "failed"]
+    cols = ["task", "method", "normalized", "transfer", "return", "seeds", "budget", "uses",
+            "diverged", "failed"]
     return show[cols].to_markdown(index=False) + "\n"
 
 

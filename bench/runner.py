@@ -80,6 +80,16 @@ def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budg
     return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
 
 
+def _transfer_summary(transfer: dict, cfg: EvalConfig) -> float | None:
+    """Mean normalized score over the families at their default magnitudes."""
+    if not transfer:
+        return None
+    from bench.perturb import default_set
+    from bench.transfer import transfer_summary
+    keys = {p.key for p in default_set()}
+    return transfer_summary({k: v for k, v in transfer.items() if k in keys})
+
+
 def _finite_tree(tree) -> bool:
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
     return all(np.isfinite(x).all() for x in leaves if np.issubdtype(x.dtype, np.inexact))
@@ -198,7 +208,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
     ctx = RunContext(req.budget, evaluator, req.seed, log=log)
     started = datetime.datetime.now(datetime.timezone.utc)
     t0 = time.perf_counter()
-    status, message, result = "ok", "", None
+    status, message, result, transfer = "ok", "", None, {}
     log(f"run {p.run_id}: {spec.name} on {req.task}, seed {req.seed}, "
         f"budget {req.budget.describe()}")
     try:
@@ -212,6 +222,13 @@ def execute(p: Prepared, store: Store, force: bool = False,
             raise Diverged("the final policy has non-finite parameters")
         train_s = ctx.elapsed()
         final = ctx.evaluate(result.policy, result.env_steps)
+        if req.eval.transfer or req.eval.robustness:
+            from bench import perturb
+            from bench.transfer import evaluate_transfer
+            todo = perturb.grid_set() if req.eval.robustness else perturb.default_set()
+            log(f"  transfer: {len(todo)} perturbed evaluations")
+            transfer = evaluate_transfer(task, p.demo, result.policy, req.seed, req.eval,
+                                         todo, spec.uses.sim_at_test)
     except Diverged as e:
         status, message = "diverged", str(e)
     except Exception as e:  # recorded, never raised past the record
@@ -230,7 +247,8 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "status": status, "message": message,
         "final_return": final["return"], "final_normalized": final["normalized"],
         "final_from": "final policy" if status == "ok" else "last valid evaluation",
-        "curve": ctx.curve, "train_metrics": ctx.last_metrics,
+        "curve": ctx.curve, "train_metrics": ctx.last_metrics, "transfer": transfer,
+        "transfer_normalized": _transfer_summary(transfer, req.eval),
         "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},

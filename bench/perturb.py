@@ -1,0 +1,155 @@
+"""Changed test dynamics: perturbation families, each with a magnitude knob (0 = nominal).
+
+    init_noise    uniform +/-m added to the initial joint positions and velocities (q, qd)
+    action_noise  Gaussian noise of std m added to every action (then clipped to [-1, 1])
+    action_bias   a fixed bias m * u, u ~ U(-1, 1)^act drawn once per episode (the paper's
+                  cloth test used a fixed bias)
+    obs_noise     Gaussian noise of std m added to what the policy observes
+    actuator      actuator strength x (1 + m)   (brax: actuator gear; pointmass: force scale)
+    mass          body masses x (1 + m)         (brax: link masses; pointmass: the mass)
+    friction      contact friction x (1 + m)    (brax: geom friction; tasks without contact
+                                                 are unaffected)
+
+The noise of a perturbed episode comes from its own key (derived from the episode's key),
+so an evaluation is reproducible, and the training methods never see these variants.
+Normalization under a perturbation uses the expert's and the random policy's returns
+measured under the SAME perturbation by the same evaluator (bench/transfer.py).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import State, Wrapper
+
+from tasks.core import Task, build_env
+
+FAMILIES = ("init_noise", "action_noise", "action_bias", "obs_noise", "actuator", "mass",
+            "friction")
+# Default magnitudes (the "transfer" column) and the robustness-curve grid per family.
+DEFAULTS = {"init_noise": 0.1, "action_noise": 0.3, "action_bias": 0.2, "obs_noise": 0.05,
+            "actuator": -0.3, "mass": 0.3, "friction": -0.5}
+GRID = {"init_noise": (0.0, 0.05, 0.1, 0.2), "action_noise": (0.0, 0.1, 0.3, 0.5),
+        "action_bias": (0.0, 0.1, 0.2, 0.4), "obs_noise": (0.0, 0.02, 0.05, 0.1),
+        "actuator": (0.0, -0.15, -0.3, -0.5), "mass": (0.0, 0.15, 0.3, 0.6),
+        "friction": (0.0, -0.25, -0.5, -0.75)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Perturbation:
+    family: str
+    magnitude: float
+
+    def __post_init__(self):
+        if self.family not in FAMILIES:
+            raise ValueError(f"unknown perturbation family {self.family!r}; families: "
+                             f"{', '.join(FAMILIES)}")
+        if self.family in ("actuator", "mass", "friction") and self.magnitude <= -1:
+            raise ValueError(f"{self.family} magnitude must be > -1 (a scale of 1 + m), got "
+                             f"{self.magnitude}")
+        if self.family in ("init_noise", "action_noise", "obs_noise") and self.magnitude < 0:
+            raise ValueError(f"{self.family} magnitude must be >= 0, got {self.magnitude}")
+
+    @property
+    def key(self) -> str:
+        return f"{self.family}={self.magnitude:g}"
+
+
+def _obs_of(env, ps, action_size):
+    """Recompute a brax env's observation from a pipeline state (signatures differ)."""
+    get = env._get_obs
+    if len(inspect.signature(get).parameters) >= 2:  # e.g. humanoid's (pipeline_state, action)
+        return get(ps, jnp.zeros(action_size))
+    return get(ps)
+
+
+class _Perturbed(Wrapper):
+    def __init__(self, env, p: Perturbation):
+        super().__init__(env)
+        self.p = p
+
+    def reset(self, rng):
+        s = self.env.reset(rng)  # the nominal reset: magnitude 0 reproduces it exactly
+        k_init, k_bias, k_step = jax.random.split(jax.random.fold_in(rng, 0x9E27), 3)
+        m = self.p.magnitude
+        if self.p.family == "init_noise" and m != 0:
+            s = self._init_noise(s, k_init, m)
+        bias = (m * jax.random.uniform(k_bias, (self.env.action_size,), minval=-1, maxval=1)
+                if self.p.family == "action_bias" else jnp.zeros(self.env.action_size))
+        s = s.replace(info={**s.info, "perturb_key": k_step, "perturb_bias": bias})
+        return self._observe(s)
+
+    def _init_noise(self, s: State, key, m):
+        inner = self.env.unwrapped
+        ps = s.pipeline_state
+        if isinstance(ps, jax.Array):  # pure-JAX tasks: the pipeline state is the vector
+            ps = ps + jax.random.uniform(key, ps.shape, minval=-m, maxval=m)
+            return s.replace(pipeline_state=ps, obs=ps)
+        k_q, k_qd = jax.random.split(key)
+        q = ps.q + jax.random.uniform(k_q, ps.q.shape, minval=-m, maxval=m)
+        qd = ps.qd + jax.random.uniform(k_qd, ps.qd.shape, minval=-m, maxval=m)
+        ps = inner.pipeline_init(q, qd)
+        return s.replace(pipeline_state=ps, obs=_obs_of(inner, ps, inner.action_size))
+
+    def _observe(self, s: State) -> State:
+        if self.p.family != "obs_noise" or self.p.magnitude == 0:
+            return s
+        key, k = jax.random.split(s.info["perturb_key"])
+        noisy = s.obs + self.p.magnitude * jax.random.normal(k, s.obs.shape)
+        return s.replace(obs=noisy, info={**s.info, "perturb_key": key})
+
+    def step(self, s: State, action):
+        key, k = jax.random.split(s.info["perturb_key"])
+        if self.p.family == "action_noise" and self.p.magnitude != 0:
+            action = action + self.p.magnitude * jax.random.normal(k, action.shape)
+        action = jnp.clip(action + s.info["perturb_bias"], -1.0, 1.0)
+        s2 = self.env.step(s, action)
+        s2 = s2.replace(info={**s2.info, "perturb_key": key,
+                              "perturb_bias": s.info["perturb_bias"]})
+        return self._observe(s2)
+
+
+def _with_system(task: Task, p: Perturbation):
+    """A fresh env of the task with scaled physical parameters."""
+    env = build_env(task.spec)
+    inner = env.unwrapped
+    f = 1.0 + p.magnitude
+    if not hasattr(inner, "sys"):  # pointmass
+        if p.family == "actuator":
+            inner.force_scale = inner.force_scale * f
+        elif p.family == "mass":
+            inner.mass = inner.mass * f
+        return env  # no contact, no friction
+    sys = inner.sys
+    if p.family == "actuator":
+        sys = sys.replace(actuator=sys.actuator.replace(gear=sys.actuator.gear * f))
+    elif p.family == "mass":
+        inertia = sys.link.inertia
+        sys = sys.replace(link=sys.link.replace(inertia=inertia.replace(
+            mass=inertia.mass * f, i=inertia.i * f)), body_mass=sys.body_mass * f)
+    elif p.family == "friction":
+        sys = sys.replace(geom_friction=sys.geom_friction * f)
+    inner.sys = sys
+    return env
+
+
+@functools.lru_cache(maxsize=256)
+def perturbed_task(task: Task, p: Perturbation) -> Task:
+    """The task with perturbed test dynamics (cached: one env object, so one compilation
+    per evaluated policy)."""
+    if p.family in ("actuator", "mass", "friction"):
+        env = _with_system(task, p)
+        # Wrapped too, so every variant has the same state structure (keys in info).
+        return Task(spec=task.spec, env=_Perturbed(env, Perturbation("action_bias", 0.0)))
+    return Task(spec=task.spec, env=_Perturbed(task.env, p))
+
+
+def default_set() -> list[Perturbation]:
+    return [Perturbation(f, DEFAULTS[f]) for f in FAMILIES]
+
+
+def grid_set() -> list[Perturbation]:
+    return [Perturbation(f, m) for f in FAMILIES for m in GRID[f]]

@@ -1,0 +1,83 @@
+"""Transfer evaluation: a final policy scored under changed test dynamics.
+
+Normalization under a perturbation p uses references measured under the SAME p by the same
+evaluator: (R_p - R_random,p) / (R_expert,p - R_random,p), with the deterministic expert and
+uniform random actions on REFERENCE_EPISODES fixed episodes. At magnitude 0 the demo's own
+nominal references are used, so a zero perturbation gives exactly the nominal score.
+References are computed once per (demo, perturbation) and cached in
+results/references/<task>.json (committed: evaluations are deterministic on CPU).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+
+import numpy as np
+
+from bench.api import Policy
+from bench.evaluator import EvalConfig, Evaluator, random_policy
+from bench.perturb import Perturbation, perturbed_task
+from tasks.core import Task
+from tasks.demo import Demo
+
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REF_DIR = os.environ.get("ILDBENCH_REFERENCES", os.path.join(_REPO, "results", "references"))
+
+
+def _load(path: str) -> dict:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {}
+
+
+def _save(path: str, data: dict) -> None:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=1, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def references(task: Task, demo: Demo, p: Perturbation) -> tuple[float, float]:
+    """(R_expert, R_random) under perturbation p."""
+    if p.magnitude == 0:
+        return demo.expert_return, demo.random_return
+    from tasks.expert import REFERENCE_EPISODES, REFERENCE_SEED, expert_policy
+    path = os.path.join(REF_DIR, f"{task.name}.json")
+    cache = _load(path)
+    entry = cache.get(demo.sha256, {}).get(p.key)
+    if entry is None:
+        ev = Evaluator(perturbed_task(task, p),
+                       EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
+        entry = {"expert": ev.evaluate(expert_policy(task.name), REFERENCE_SEED).mean_return,
+                 "random": ev.evaluate(random_policy(task.action_size),
+                                       REFERENCE_SEED).mean_return}
+        cache = _load(path)  # re-read: another worker may have added entries meanwhile
+        cache.setdefault(demo.sha256, {})[p.key] = entry
+        _save(path, cache)
+    return entry["expert"], entry["random"]
+
+
+def evaluate_transfer(task: Task, demo: Demo, policy: Policy, seed: int, config: EvalConfig,
+                      perturbations, allow_sim_at_test: bool = False) -> dict[str, dict]:
+    """{perturbation key: {family, magnitude, return, normalized, expert_return,
+    random_return}} for the policy under each perturbation."""
+    out = {}
+    for p in perturbations:
+        r_exp, r_rand = references(task, demo, p)
+        ev = Evaluator(perturbed_task(task, p), config, r_exp, r_rand, allow_sim_at_test)
+        res = ev.evaluate(policy, seed)
+        out[p.key] = {"family": p.family, "magnitude": p.magnitude,
+                      "return": res.mean_return, "normalized": res.mean_normalized,
+                      "expert_return": r_exp, "random_return": r_rand}
+    return out
+
+
+def transfer_summary(transfer: dict[str, dict]) -> float | None:
+    """The leaderboard's 'transfer' number: mean normalized score over the families at their
+    default magnitudes (entries with magnitude 0 excluded)."""
+    vals = [v["normalized"] for v in transfer.values() if v["magnitude"] != 0]
+    return float(np.mean(vals)) if vals else None

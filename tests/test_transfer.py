@@ -1,0 +1,108 @@
+"""Transfer evaluation: zero perturbation == nominal exactly; each family changes what it
+claims; noise is reproducible; normalization uses references under the same perturbation."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bench.api import Policy
+from bench.evaluator import EvalConfig, Evaluator
+from bench.perturb import FAMILIES, Perturbation, perturbed_task
+from bench import transfer as tr
+from tasks import make_task
+from tasks.demo import load_demo
+from tasks.expert import expert_policy
+
+CFG = EvalConfig(num_episodes=8)
+
+
+@pytest.fixture(scope="module")
+def pm():
+    task = make_task("pointmass")
+    return task, load_demo(task.spec.demo_path, task), expert_policy("pointmass")
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_zero_magnitude_is_exactly_nominal(family, pm, monkeypatch, tmp_path):
+    task, demo, pol = pm
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path))
+    nominal = Evaluator(task, CFG, demo.expert_return, demo.random_return).evaluate(pol, 3)
+    out = tr.evaluate_transfer(task, demo, pol, 3, CFG, [Perturbation(family, 0.0)])
+    (entry,) = out.values()
+    assert entry["return"] == nominal.mean_return
+    assert entry["normalized"] == nominal.mean_normalized
+
+
+def _rollout(task, actions, key=jax.random.PRNGKey(0)):
+    env = task.env
+    s = env.reset(key)
+    s, obs = jax.lax.scan(lambda s, a: (env.step(s, a), (s.obs, s.pipeline_state)), s,
+                          actions)
+    return obs
+
+
+@pytest.mark.parametrize("family,magnitude", [("mass", 1.0), ("actuator", -0.5),
+                                              ("action_noise", 0.3), ("action_bias", 0.3),
+                                              ("init_noise", 0.2)])
+def test_each_family_changes_the_trajectory_of_fixed_actions(family, magnitude, pm):
+    task = pm[0]
+    actions = 0.5 * jnp.ones((20, 1))
+    _, base = _rollout(perturbed_task(task, Perturbation(family, 0.0)), actions)
+    _, pert = _rollout(perturbed_task(task, Perturbation(family, magnitude)), actions)
+    assert not np.allclose(base, pert)
+
+
+def test_mass_doubles_inertia_by_hand(pm):
+    """Pointmass: v_1 = v_0 + dt * f / m, so doubling m halves the velocity change."""
+    task = pm[0]
+    obs_b, ps_b = _rollout(perturbed_task(task, Perturbation("mass", 0.0)), jnp.ones((2, 1)))
+    obs_m, ps_m = _rollout(perturbed_task(task, Perturbation("mass", 1.0)), jnp.ones((2, 1)))
+    dv_base = ps_b[1, 1] - ps_b[0, 1]
+    dv_mass = ps_m[1, 1] - ps_m[0, 1]
+    np.testing.assert_allclose(dv_mass, dv_base / 2, rtol=1e-5)
+
+
+def test_friction_leaves_a_contact_free_task_alone(pm):
+    task = pm[0]
+    a = 0.5 * jnp.ones((10, 1))
+    np.testing.assert_array_equal(_rollout(perturbed_task(task, Perturbation("friction", -0.5)),
+                                           a)[1], _rollout(task, a)[1])
+
+
+def test_obs_noise_changes_what_the_policy_sees_not_the_physics(pm):
+    task = pm[0]
+    a = 0.5 * jnp.ones((10, 1))
+    obs, ps = _rollout(perturbed_task(task, Perturbation("obs_noise", 0.1)), a)
+    obs0, ps0 = _rollout(task, a)
+    np.testing.assert_array_equal(ps, ps0)
+    assert not np.allclose(obs[1:], obs0[1:])
+
+
+def test_noise_with_a_fixed_key_is_reproducible(pm):
+    task, demo, pol = pm
+    ev = Evaluator(perturbed_task(task, Perturbation("action_noise", 0.3)), CFG)
+    a, b = ev.evaluate(pol, 5).returns, ev.evaluate(pol, 5).returns
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, ev.evaluate(pol, 6).returns)
+
+
+def test_normalization_uses_references_under_the_same_perturbation(pm, monkeypatch,
+                                                                   tmp_path):
+    task, demo, pol = pm
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path))
+    p = Perturbation("actuator", -0.5)
+    (entry,) = tr.evaluate_transfer(task, demo, pol, 0, CFG, [p]).values()
+    r_exp, r_rand = entry["expert_return"], entry["random_return"]
+    assert r_exp != demo.expert_return  # measured under the perturbation, not nominal
+    ev = Evaluator(perturbed_task(task, p), EvalConfig(num_episodes=128))
+    assert r_exp == ev.evaluate(pol, 0).mean_return
+    assert entry["normalized"] == pytest.approx((entry["return"] - r_rand) / (r_exp - r_rand))
+    assert (tmp_path / "pointmass.json").exists()  # cached for the next run
+
+
+@pytest.mark.parametrize("kw,match", [(("gravity", 1.0), "unknown perturbation family"),
+                                      (("mass", -1.0), "must be > -1"),
+                                      (("action_noise", -0.1), "must be >= 0")])
+def test_invalid_perturbations(kw, match):
+    with pytest.raises(ValueError, match=match):
+        Perturbation(*kw)
