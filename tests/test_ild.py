@@ -216,3 +216,17 @@ def test_ild_with_bc_warm_start(store):
     rec, _ = execute(prepare(_ild(1, bc_updates=200)), store, log=lambda s: None)
     assert rec["status"] == "ok" and rec["final_normalized"] >= 0.95
     assert rec["curve"][0]["env_steps"] == 0  # the BC warm start is evaluated first
+
+
+def test_masked_states_neither_deviate_nor_cover():
+    x = jnp.array([[0.0], [1.0], [50.0]])  # the last state is after termination
+    y = jnp.array([[0.0], [1.0], [2.0]])
+    mask = jnp.array([True, True, False])
+    t = chamfer_alpha(x, y, 1.0, "sq", mask=mask)
+    # deviation over alive states: (0 + 0) / 2; coverage: y=2 -> nearest alive x=1: 1 / 3
+    assert float(t.deviation) == 0.0
+    np.testing.assert_allclose(t.coverage, 1.0 / 3.0, rtol=1e-6)
+    g = jax.grad(lambda x: chamfer_alpha(x, y, 1.0, "sq", mask=mask).loss)(x)
+    assert float(g[2, 0]) == 0.0 and np.isfinite(np.asarray(g)).all()
+    assert float(stepwise_l2(x, y, "sq", mask=mask).loss) == 0.0  # alive: (0 + 0) / 2
+    assert float(stepwise_l2(x, y, "sq").loss) == 48.0 ** 2 / 3  # unmasked

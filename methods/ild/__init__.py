@@ -13,4 +13,5 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
+    version="2",  # 2: states after an early termination are masked out of the loss
 )

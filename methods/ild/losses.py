@@ -45,14 +45,16 @@ def _point_distance(sq: jax.Array, dim: int, distance: str) -> jax.Array:
     raise ValueError(f"distance must be 'rms' or 'sq', got {distance!r}")
 
 
-def nearest(x: jax.Array, y: jax.Array) -> tuple[jax.Array, jax.Array]:
+def nearest(x: jax.Array, y: jax.Array, mask: jax.Array | None = None):
     """Indices of nearest neighbours, (T,) into y and (M,) into x, without gradient.
     Uses ||x||^2 + ||y||^2 - 2 x.y: a (T, M) matmul, never a (T, M, D) tensor, so memory
     stays B x T x M at the paper's batch. Its cancellation error near zero distance can
-    only swap near-equal neighbours; distances themselves are recomputed exactly."""
+    only swap near-equal neighbours; distances themselves are recomputed exactly.
+    mask (T,) excludes rollout states (after termination) from being anyone's neighbour."""
     x, y = jax.lax.stop_gradient(x), jax.lax.stop_gradient(y)
     sq = (jnp.sum(x * x, -1)[:, None] + jnp.sum(y * y, -1)[None, :] - 2.0 * x @ y.T)
-    return jnp.argmin(sq, axis=1), jnp.argmin(sq, axis=0)
+    to_x = jnp.argmin(sq if mask is None else jnp.where(mask[:, None], sq, jnp.inf), axis=0)
+    return jnp.argmin(sq, axis=1), to_x
 
 
 def pairwise_distance(x: jax.Array, y: jax.Array, distance: str = "rms") -> jax.Array:
@@ -61,23 +63,34 @@ def pairwise_distance(x: jax.Array, y: jax.Array, distance: str = "rms") -> jax.
     return _point_distance(sq, x.shape[-1], distance)
 
 
-def chamfer_alpha(x: jax.Array, y: jax.Array, alpha: float = 1.0,
-                  distance: str = "rms") -> LossTerms:
+def _masked_mean(v: jax.Array, mask: jax.Array | None) -> jax.Array:
+    if mask is None:
+        return jnp.mean(v)
+    w = mask.astype(v.dtype)
+    return jnp.sum(w * v) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def chamfer_alpha(x: jax.Array, y: jax.Array, alpha: float = 1.0, distance: str = "rms",
+                  mask: jax.Array | None = None) -> LossTerms:
     """Chamfer-alpha between one rollout x (T, D) and one demo y (M, D).
     The gradient of a min is the gradient at its argmin, so distances are computed exactly
-    (from differences) only for the nearest pairs."""
-    to_y, to_x = nearest(x, y)
+    (from differences) only for the nearest pairs. `mask` (T,) marks the rollout states
+    that exist (False after termination): they neither deviate nor cover."""
+    to_y, to_x = nearest(x, y, mask)
     dim = x.shape[-1]
-    deviation = jnp.mean(_point_distance(jnp.sum((x - y[to_y]) ** 2, -1), dim, distance))
+    dev = _point_distance(jnp.sum((x - y[to_y]) ** 2, -1), dim, distance)
+    deviation = _masked_mean(dev, mask)
     coverage = jnp.mean(_point_distance(jnp.sum((x[to_x] - y) ** 2, -1), dim, distance))
     return LossTerms(coverage + alpha * deviation, coverage, deviation)
 
 
-def stepwise_l2(x: jax.Array, y: jax.Array, distance: str = "rms") -> LossTerms:
+def stepwise_l2(x: jax.Array, y: jax.Array, distance: str = "rms",
+                mask: jax.Array | None = None) -> LossTerms:
     """The ablation: time-aligned distance, mean over t of d(s_t, g_t) (requires T == M)."""
     if x.shape != y.shape:
         raise ValueError(f"step-wise L2 needs equal lengths, got {x.shape} vs {y.shape}")
-    loss = jnp.mean(_point_distance(jnp.sum((x - y) ** 2, axis=-1), x.shape[-1], distance))
+    d = _point_distance(jnp.sum((x - y) ** 2, axis=-1), x.shape[-1], distance)
+    loss = _masked_mean(d, mask)
     return LossTerms(loss, loss, jnp.zeros_like(loss))
 
 

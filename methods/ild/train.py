@@ -61,24 +61,29 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
             m = jax.vmap(task.matched_state)(s2)
             cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
-            return s2, (m, a)
+            return s2, (m, a, s2.done)
 
         step_fn = jax.checkpoint(body) if config.remat else body
-        _, (ms, acts) = jax.lax.scan(step_fn, s0, (jnp.arange(T), jax.random.split(k_act, T)))
+        _, (ms, acts, dones) = jax.lax.scan(step_fn, s0,
+                                            (jnp.arange(T), jax.random.split(k_act, T)))
         x = norm(jnp.swapaxes(ms, 0, 1))  # (B, T, D)
+        # alive[b, t]: no termination before step t (the terminating state itself counts).
+        before = jnp.cumsum(jnp.swapaxes(dones, 0, 1), axis=1) - jnp.swapaxes(dones, 0, 1)
+        alive = (before == 0) if config.mask_after_done else jnp.ones_like(before, bool)
         if config.loss == "chamfer":
-            per_env = jax.vmap(lambda xb: multi_demo(chamfer_alpha, xb, goals,
-                                                     alpha=config.alpha,
-                                                     distance=config.distance))(x)
+            per_env = jax.vmap(lambda xb, mb: multi_demo(chamfer_alpha, xb, goals,
+                                                         alpha=config.alpha, mask=mb,
+                                                         distance=config.distance))(x, alive)
         else:
-            per_env = jax.vmap(lambda xb: multi_demo(stepwise_l2, xb, goals,
-                                                     distance=config.distance))(x)
+            per_env = jax.vmap(lambda xb, mb: multi_demo(stepwise_l2, xb, goals, mask=mb,
+                                                         distance=config.distance))(x, alive)
         raw = jnp.mean(per_env.loss)
         loss = jnp.tanh(raw) if config.tanh_loss else raw
         aux = {"train/loss": loss, "train/loss_raw": raw,
                "train/coverage": jnp.mean(per_env.coverage),
                "train/deviation": jnp.mean(per_env.deviation),
-               "train/action_abs": jnp.mean(jnp.abs(acts))}
+               "train/action_abs": jnp.mean(jnp.abs(acts)),
+               "train/alive_frac": jnp.mean(alive.astype(jnp.float32))}
         return loss, aux
 
     return loss_fn
