@@ -96,7 +96,7 @@ def _coerce(field: dataclasses.Field, hint, value: Any, method: str) -> Any:
         if hint in (int, float, str):
             return hint(value)
         if origin is tuple:
-            (inner, *_), = [typing.get_args(hint)]
+            inner = typing.get_args(hint)[0]
             return tuple(inner(v) for v in value.strip("()[] ").split(",") if v.strip())
     except ValueError:
         raise ConfigError(f"method {method!r}: config field {field.name!r} expects "

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import time
 
@@ -21,7 +22,6 @@ import numpy as np
 
 from tasks import TASKS, make_task
 from tasks.core import Task, build_env
-from tasks.registry import TaskSpec
 
 CANDIDATES = ("generalized", "positional", "spring")
 FIELDS = ["task", "backend", "batch", "horizon", "fwd_steps_per_s", "grad_steps_per_s",
@@ -99,7 +99,7 @@ def main(argv=None):
                     continue
                 row = dict(task=name, backend=backend, batch=a.batch, horizon=a.horizon)
                 try:
-                    spec = TaskSpec(**{**base.__dict__, "backend": backend})
+                    spec = dataclasses.replace(base, backend=backend)
                     task = Task(spec=spec, env=build_env(spec))
                     row.update(measure(task, a.batch, a.horizon))
                 except Exception as e:  # an unsupported backend is a row, not a crash
