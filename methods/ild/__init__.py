@@ -13,5 +13,5 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
-    version="2",  # 2: states after an early termination are masked out of the loss
+    version="3",  # 3: mask_after_done is an option (off by default)
 )
