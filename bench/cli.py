@@ -6,6 +6,7 @@
     ildbench sweep --methods M.. --tasks T.. --seeds N --budget 60s     (local grid)
     ildbench quick                      the main job: a quick leaderboard on the defaults
     ildbench leaderboard                print + write results/leaderboard.{md,csv}
+    ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench expert train --task T      train a PPO expert (progress, time left)
     ildbench expert demo --task T       roll the expert into the task's demo file
 """
@@ -143,6 +144,15 @@ def cmd_leaderboard(args):
     return 0
 
 
+def cmd_plot_robustness(args):
+    from bench.plots import robustness_plot
+    from bench.store import Store
+    from tasks import get_spec
+    get_spec(args.task)
+    print(f"written: {robustness_plot(Store(args.store), args.task, args.out)}")
+    return 0
+
+
 def cmd_expert(args):
     from tasks import get_spec
     from tasks.expert import make_demo, train_expert
@@ -211,6 +221,10 @@ def build_parser():
     p = sub.add_parser("leaderboard", help="aggregate the store into a table")
     p.add_argument("--out", default="results")
     p.set_defaults(fn=cmd_leaderboard)
+    p = sub.add_parser("plot-robustness", help="normalized score vs perturbation magnitude")
+    p.add_argument("--task", required=True)
+    p.add_argument("--out", default="results")
+    p.set_defaults(fn=cmd_plot_robustness)
     p = sub.add_parser("expert", help="expert training and demos")
     esub = p.add_subparsers(dest="expert_cmd", required=True)
     _eadd = esub.add_parser

@@ -30,3 +30,19 @@ def test_mean_std_and_seed_counts(store):
 def test_empty_store(store):
     assert lb.leaderboard(store).empty
     assert "no finished runs" in lb.to_markdown(lb.leaderboard(store))
+
+
+def test_robustness_plot_from_transfer_entries(store, tmp_path):
+    from bench.plots import robustness_frame, robustness_plot
+    for seed, (nom, noisy) in enumerate([(1.0, 0.5), (0.8, 0.3)]):
+        store.write({"run_id": f"r{seed}", "task": "pointmass", "method": "m", "seed": seed,
+                     "status": "ok", "final_normalized": nom, "transfer": {
+                         "action_noise=0.3": {"family": "action_noise", "magnitude": 0.3,
+                                              "normalized": noisy}}})
+    df = robustness_frame(store, "pointmass")
+    g = df[df.family == "action_noise"]
+    assert g.normalized.mean() == pytest.approx(0.4) and len(df) == 4
+    path = robustness_plot(store, "pointmass", str(tmp_path))
+    assert path.endswith("robustness_pointmass.png") and (tmp_path / "robustness_pointmass.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="no finished runs for task 'hopper'"):
+        robustness_plot(store, "hopper", str(tmp_path))
