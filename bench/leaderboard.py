@@ -18,6 +18,20 @@ COLUMNS = ["task", "method", "uses", "budget", "seeds", "normalized_mean", "norm
            "transfer_mean", "transfer_std", "return_mean", "diverged", "failed"]
 
 
+def _transfer(record: dict) -> float | None:
+    """Recomputed from the record's per-family entries with the current applicability rules
+    (bench.perturb.inapplicable), at the default magnitudes."""
+    transfer = record.get("transfer") or {}
+    if not transfer:
+        return None
+    from bench.perturb import default_set
+    from bench.transfer import transfer_summary
+    from tasks import make_task
+    keys = {p.key for p in default_set()}
+    return transfer_summary({k: v for k, v in transfer.items() if k in keys},
+                            make_task(record["task"]))
+
+
 def records_frame(store: Store) -> pd.DataFrame:
     rows = []
     for r in store.records():
@@ -26,7 +40,7 @@ def records_frame(store: Store) -> pd.DataFrame:
             norm = 0.0
         rows.append({"task": r["task"], "method": r["method"], "seed": r["seed"],
                      "status": r["status"], "normalized": norm, "return": r.get("final_return"),
-                     "transfer": r.get("transfer_normalized"),
+                     "transfer": _transfer(r),
                      "uses": Uses(**r["uses"]).describe() + (" (reference)" if r.get(
                          "reference_method") else ""),
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})

@@ -23,6 +23,7 @@ import inspect
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import State, Wrapper
 
 from tasks.core import Task, build_env
@@ -134,6 +135,29 @@ def _with_system(task: Task, p: Perturbation):
         sys = sys.replace(geom_friction=sys.geom_friction * f)
     inner.sys = sys
     return env
+
+
+def inapplicable(task: Task, p: Perturbation) -> str | None:
+    """Why family p cannot change this task's dynamics (None if it can). Such families are
+    skipped, recorded with the reason, and left out of the transfer score. Magnitude 0 is
+    the nominal task, always applicable."""
+    if p.magnitude == 0:
+        return None
+    inner = task.env.unwrapped
+    sys = getattr(inner, "sys", None)
+    if p.family == "friction":
+        if sys is None:
+            return "the task has no contacts"
+        ct = np.asarray(sys.geom_contype)
+        ca = np.asarray(sys.geom_conaffinity)
+        if not (np.bitwise_and(ct[:, None], ca[None, :]) != 0).any():
+            return "no geom pair can collide (contype/conaffinity), so no contact friction"
+    if p.family == "mass" and sys is not None and task.spec.backend in ("spring",
+                                                                         "positional"):
+        if float(sys.spring_mass_scale) == 1.0:
+            return (f"brax's {task.spec.backend} pipeline normalizes link masses for this task "
+                    "(spring_mass_scale = 1): mass has no effect")
+    return None
 
 
 @functools.lru_cache(maxsize=256)

@@ -65,8 +65,13 @@ def evaluate_transfer(task: Task, demo: Demo, policy: Policy, seed: int, config:
                       perturbations, allow_sim_at_test: bool = False) -> dict[str, dict]:
     """{perturbation key: {family, magnitude, return, normalized, expert_return,
     random_return}} for the policy under each perturbation."""
+    from bench.perturb import inapplicable
     out = {}
     for p in perturbations:
+        why = inapplicable(task, p)
+        if why is not None:
+            out[p.key] = {"family": p.family, "magnitude": p.magnitude, "skipped": why}
+            continue
         r_exp, r_rand = references(task, demo, p)
         ev = Evaluator(perturbed_task(task, p), config, r_exp, r_rand, allow_sim_at_test)
         res = ev.evaluate(policy, seed)
@@ -76,8 +81,13 @@ def evaluate_transfer(task: Task, demo: Demo, policy: Policy, seed: int, config:
     return out
 
 
-def transfer_summary(transfer: dict[str, dict]) -> float | None:
+def transfer_summary(transfer: dict[str, dict], task: Task | None = None) -> float | None:
     """The leaderboard's 'transfer' number: mean normalized score over the families at their
-    default magnitudes (entries with magnitude 0 excluded)."""
-    vals = [v["normalized"] for v in transfer.values() if v["magnitude"] != 0]
+    default magnitudes (magnitude-0 and skipped entries excluded; with `task`, also entries
+    of families that cannot affect it, for records made before that rule)."""
+    from bench.perturb import Perturbation, inapplicable
+    vals = [v["normalized"] for v in transfer.values()
+            if v["magnitude"] != 0 and "skipped" not in v and not (
+                task is not None and inapplicable(task, Perturbation(v["family"],
+                                                                     v["magnitude"])))]
     return float(np.mean(vals)) if vals else None

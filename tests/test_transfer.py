@@ -106,3 +106,22 @@ def test_normalization_uses_references_under_the_same_perturbation(pm, monkeypat
 def test_invalid_perturbations(kw, match):
     with pytest.raises(ValueError, match=match):
         Perturbation(*kw)
+
+
+@pytest.mark.parametrize("task_name,family,expect", [
+    ("pointmass", "friction", "no contacts"), ("inverted_pendulum", "friction", "no geom pair"),
+    ("hopper", "mass", "spring_mass_scale = 1"), ("hopper", "friction", None),
+    ("inverted_pendulum", "mass", None), ("pointmass", "mass", None)])
+def test_families_that_cannot_change_a_task_are_flagged(task_name, family, expect):
+    from bench.perturb import inapplicable
+    why = inapplicable(make_task(task_name), Perturbation(family, 0.3))
+    assert (why is None) if expect is None else (expect in why)
+
+
+def test_skipped_families_are_recorded_and_left_out_of_the_summary(pm, monkeypatch, tmp_path):
+    task, demo, pol = pm
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path))
+    out = tr.evaluate_transfer(task, demo, pol, 0, CFG, [Perturbation("friction", -0.5),
+                                                         Perturbation("mass", 0.3)])
+    assert "no contacts" in out["friction=-0.5"]["skipped"]
+    assert tr.transfer_summary(out) == out["mass=0.3"]["normalized"]
