@@ -1,11 +1,14 @@
 """Leaderboard: mean +/- std of the FINAL normalized score per task x method, over seeds.
 
-A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never
+Runs pool over seeds only when method version, preset and config are equal (the 'variant'
+column, a short hash of them). A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never
 had one); 'failed' runs are listed in the `failed` column and not averaged. Records that
 differ only in seed are pooled; the budget is shown so unequal budgets are visible.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 
 import pandas as pd
@@ -14,7 +17,7 @@ from bench.api import Uses
 from bench.budget import Budget
 from bench.store import Store
 
-COLUMNS = ["task", "method", "uses", "budget", "seeds", "normalized_mean", "normalized_std",
+COLUMNS = ["task", "method", "variant", "uses", "budget", "seeds", "normalized_mean", "normalized_std",
            "transfer_mean", "transfer_std", "return_mean", "diverged", "failed"]
 
 
@@ -32,19 +35,28 @@ def _transfer(record: dict) -> float | None:
                             make_task(record["task"]))
 
 
+def variant(record: dict) -> str:
+    """Short id of (method version, preset, config): runs pool over seeds only when equal."""
+    key = json.dumps([record.get("method_version"), record.get("preset"),
+                      record.get("config")], sort_keys=True, default=str)
+    return hashlib.sha256(key.encode()).hexdigest()[:6]
+
+
 def records_frame(store: Store) -> pd.DataFrame:
     rows = []
     for r in store.records():
         norm = r.get("final_normalized")
         if r["status"] == "diverged" and norm is None:
             norm = 0.0
-        rows.append({"task": r["task"], "method": r["method"], "seed": r["seed"],
+        rows.append({"task": r["task"], "method": r["method"], "variant": variant(r),
+                     "seed": r["seed"],
                      "status": r["status"], "normalized": norm, "return": r.get("final_return"),
                      "transfer": _transfer(r),
                      "uses": Uses(**r["uses"]).describe() + (" (reference)" if r.get(
                          "reference_method") else ""),
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})
-    return pd.DataFrame(rows, columns=["task", "method", "seed", "status", "normalized",
+    return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
+                                       "normalized",
                                        "return", "transfer", "uses", "budget", "train_s"])
 
 
@@ -53,9 +65,11 @@ def leaderboard(store: Store) -> pd.DataFrame:
     if df.empty:
         return pd.DataFrame(columns=COLUMNS)
     out = []
-    for (task, method, uses, budget), g in df.groupby(["task", "method", "uses", "budget"]):
+    for (task, method, var, uses, budget), g in df.groupby(["task", "method", "variant", "uses",
+                                                            "budget"]):
         scored = g[g.status.isin(["ok", "diverged"])]
-        out.append({"task": task, "method": method, "uses": uses, "budget": budget,
+        out.append({"task": task, "method": method, "variant": var, "uses": uses,
+                    "budget": budget,
                     "seeds": len(scored),
                     "normalized_mean": scored.normalized.astype(float).mean(),
                     "normalized_std": scored.normalized.astype(float).std(ddof=1),
@@ -78,8 +92,8 @@ def to_markdown(board: pd.DataFrame) -> str:
                         ("-" if pd.isna(m) else f"{m:.3f}")
                         for m, s in zip(show.transfer_mean, show.transfer_std)]
     show["return"] = show.return_mean.map(lambda v: f"{v:.2f}")
-    cols = ["task", "method", "normalized", "transfer", "return", "seeds", "budget", "uses",
-            "diverged", "failed"]
+    cols = ["task", "method", "variant", "normalized", "transfer", "return", "seeds", "budget",
+            "uses", "diverged", "failed"]
     return show[cols].to_markdown(index=False) + "\n"
 
 

@@ -46,3 +46,15 @@ def test_robustness_plot_from_transfer_entries(store, tmp_path):
     assert path.endswith("robustness_pointmass.png") and (tmp_path / "robustness_pointmass.png").stat().st_size > 1000
     with pytest.raises(ValueError, match="no finished runs for task 'hopper'"):
         robustness_plot(store, "hopper", str(tmp_path))
+
+
+def test_different_configs_are_not_pooled(store):
+    for rid, seed, lr in (("a", 0, 1e-3), ("b", 1, 1e-3), ("c", 0, 1e-4)):
+        store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
+                     "status": "ok", "final_normalized": 0.5, "final_return": 1.0,
+                     "config": {"lr": lr}, "method_version": "1", "preset": None,
+                     "uses": {}, "reference_method": False,
+                     "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                                "evals": 10}})
+    board = lb.leaderboard(store)
+    assert sorted(board.seeds.tolist()) == [1, 2] and board.variant.nunique() == 2
