@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tasks import TASKS, make_task
+from tasks import TASKS
 from tasks.core import Task, build_env
 
 CANDIDATES = ("generalized", "positional", "spring")

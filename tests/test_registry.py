@@ -6,7 +6,7 @@ import pytest
 from bench import plugins
 from bench.api import MethodSpec, Uses
 from bench.plugins import ConfigError, UnknownMethodError, build_config, get_method
-from tasks import TASKS, TaskSpec, UnknownTaskError, get_spec, register
+from tasks import TASKS, UnknownTaskError, get_spec, register
 
 PAPER_TASKS = {"ant", "hopper", "humanoid", "reacher", "walker2d", "swimmer",
                "inverted_pendulum", "acrobot"}

@@ -4,9 +4,7 @@ import json
 import os
 import time
 
-import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 from bench import plugins

@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bench.api import Policy
 from bench.evaluator import EvalConfig, Evaluator
 from bench.perturb import FAMILIES, Perturbation, perturbed_task
 from bench import transfer as tr
