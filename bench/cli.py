@@ -81,11 +81,18 @@ def cmd_methods(args):
 
 def _requests(args, methods, tasks, seeds):
     from bench.evaluator import EvalConfig
+    from bench.plugins import get_method
     from bench.runner import RunRequest
     budget = _budget(args)
     ev = EvalConfig(num_episodes=args.eval_episodes, deterministic=not args.stochastic_eval,
                     transfer=args.transfer, robustness=args.robustness)
-    return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=args.preset,
+
+    def preset(m):  # quick: the cpu preset where a method has one
+        if getattr(args, "preset_if_available", None):
+            return args.preset_if_available if args.preset_if_available in get_method(
+                m).presets else None
+        return args.preset
+    return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=preset(m),
                        overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos)
             for m, t, s in itertools.product(methods, tasks, seeds)]
 
@@ -129,13 +136,16 @@ QUICK_TASKS = ("pointmass", "inverted_pendulum", "reacher")
 
 
 def cmd_quick(args):
-    """All registered imitation methods x the cheap tasks that have a demo x 2 seeds, 60 s
-    each (locomotion tasks spend most of a minute compiling the ILD update on a CPU)."""
+    """All registered imitation methods (with their cpu preset where they have one) x the
+    cheap tasks that have a demo x 2 seeds, 60 s each (locomotion tasks spend most of a
+    minute compiling the ILD update on a CPU)."""
     from bench.plugins import all_methods
     from tasks import TASKS
     args.methods = [m.name for m in all_methods().values() if not m.reference]
     args.tasks = [t for t in QUICK_TASKS
                   if TASKS[t].demo_path and os.path.exists(TASKS[t].demo_path)]
+    if args.preset is None:
+        args.preset_if_available = "cpu"
     return cmd_sweep(args)
 
 

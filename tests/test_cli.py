@@ -64,3 +64,17 @@ def test_listing_commands(capsys):
     assert code == 0 and "bc" in out and "demo states, demo actions" in out
     code, out, _ = _run(capsys, "tasks")
     assert code == 0 and "pointmass" in out and "acrobot" in out
+
+
+def test_quick_uses_the_cpu_preset_where_a_method_has_one(monkeypatch):
+    from bench import plugins
+    from bench.cli import build_parser, cmd_quick
+    seen = {}
+    monkeypatch.setattr("bench.cli.cmd_sweep", lambda args: seen.update(
+        reqs=__import__("bench.cli", fromlist=["_requests"])._requests(
+            args, args.methods, args.tasks, [0])))
+    cmd_quick(build_parser().parse_args(["quick", "--store", "unused"]))
+    presets = {r.method: r.preset for r in seen["reqs"]}
+    assert presets["ild"] == "cpu" and presets["bc"] == "cpu"
+    assert {r.task for r in seen["reqs"]} == {"pointmass", "inverted_pendulum", "reacher"}
+    assert plugins.get_method("ild").presets["cpu"]["num_envs"] == 32
