@@ -1,9 +1,9 @@
 """Leaderboard: mean +/- std of the FINAL normalized score per task x method, over seeds.
 
 Runs pool over seeds only when method version, preset and config are equal (the 'variant'
-column, a short hash of them). A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never
-had one); 'failed' runs are listed in the `failed` column and not averaged. Records that
-differ only in seed are pooled; the budget is shown so unequal budgets are visible.
+column, a short hash of them); the budget is shown so unequal budgets are visible. A
+'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never had
+one); 'failed' runs are listed in the `failed` column and not averaged.
 """
 from __future__ import annotations
 
@@ -24,15 +24,10 @@ COLUMNS = ["task", "method", "variant", "uses", "budget", "seeds", "normalized_m
 def _transfer(record: dict) -> float | None:
     """Recomputed from the record's per-family entries with the current applicability rules
     (bench.perturb.inapplicable), at the default magnitudes."""
-    transfer = record.get("transfer") or {}
-    if not transfer:
-        return None
-    from bench.perturb import default_set
-    from bench.transfer import transfer_summary
+    from bench.transfer import default_summary
     from tasks import make_task
-    keys = {p.key for p in default_set()}
-    return transfer_summary({k: v for k, v in transfer.items() if k in keys},
-                            make_task(record["task"]))
+    transfer = record.get("transfer") or {}
+    return default_summary(transfer, make_task(record["task"])) if transfer else None
 
 
 def variant(record: dict) -> str:

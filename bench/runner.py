@@ -29,6 +29,7 @@ from bench.budget import Budget, Clock
 from bench.evaluator import EvalConfig, Evaluator
 from bench.plugins import build_config, get_method
 from bench.store import Store
+from bench.transfer import default_summary
 from tasks import make_task
 from tasks.demo import Demo, library_versions, load_demo
 
@@ -78,16 +79,6 @@ def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budg
            "eval": dataclasses.asdict(eval_cfg), "num_demos": num_demos,
            "ildbench": __version__}
     return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
-
-
-def _transfer_summary(transfer: dict, cfg: EvalConfig) -> float | None:
-    """Mean normalized score over the families at their default magnitudes."""
-    if not transfer:
-        return None
-    from bench.perturb import default_set
-    from bench.transfer import transfer_summary
-    keys = {p.key for p in default_set()}
-    return transfer_summary({k: v for k, v in transfer.items() if k in keys})
 
 
 def _finite_tree(tree) -> bool:
@@ -248,7 +239,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "final_return": final["return"], "final_normalized": final["normalized"],
         "final_from": "final policy" if status == "ok" else "last valid evaluation",
         "curve": ctx.curve, "train_metrics": ctx.last_metrics, "transfer": transfer,
-        "transfer_normalized": _transfer_summary(transfer, req.eval),
+        "transfer_normalized": default_summary(transfer),
         "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},

@@ -17,6 +17,24 @@ DEFAULT_ROOT = os.environ.get("ILDBENCH_STORE", "runs")
 FINISHED = ("ok", "diverged")
 
 
+def write_json_atomic(path: str, obj) -> None:
+    """Write JSON so that readers see the old file or the new one, never a partial one:
+    a temp file in the same directory, fsync, os.replace."""
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".json")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=True, allow_nan=True)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 class Store:
     def __init__(self, root: str = DEFAULT_ROOT):
         self.root = root
@@ -36,19 +54,8 @@ class Store:
         return rec if rec is not None and rec.get("status") in FINISHED else None
 
     def write(self, record: dict) -> str:
-        os.makedirs(self.root, exist_ok=True)
         path = self.path(record["run_id"])
-        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".json")
-        try:
-            with os.fdopen(fd, "w") as f:
-                json.dump(record, f, indent=1, sort_keys=True, allow_nan=True)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        write_json_atomic(path, record)
         return path
 
     def records(self) -> Iterator[dict]:

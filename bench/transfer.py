@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 
 import numpy as np
 
 from bench.api import Policy
 from bench.evaluator import EvalConfig, Evaluator, random_policy
-from bench.perturb import Perturbation, perturbed_task
+from bench.perturb import Perturbation, default_set, perturbed_task
+from bench.store import write_json_atomic
 from tasks.core import Task
 from tasks.demo import Demo
 
@@ -31,14 +31,6 @@ def _load(path: str) -> dict:
             return json.load(f)
     except (FileNotFoundError, json.JSONDecodeError):
         return {}
-
-
-def _save(path: str, data: dict) -> None:
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1, sort_keys=True)
-    os.replace(tmp, path)
 
 
 def references(task: Task, demo: Demo, p: Perturbation) -> tuple[float, float]:
@@ -57,7 +49,7 @@ def references(task: Task, demo: Demo, p: Perturbation) -> tuple[float, float]:
                                        REFERENCE_SEED).mean_return}
         cache = _load(path)  # re-read: another worker may have added entries meanwhile
         cache.setdefault(demo.sha256, {})[p.key] = entry
-        _save(path, cache)
+        write_json_atomic(path, cache)
     return entry["expert"], entry["random"]
 
 
@@ -91,3 +83,12 @@ def transfer_summary(transfer: dict[str, dict], task: Task | None = None) -> flo
                 task is not None and inapplicable(task, Perturbation(v["family"],
                                                                      v["magnitude"])))]
     return float(np.mean(vals)) if vals else None
+
+
+def default_summary(transfer: dict[str, dict], task: Task | None = None) -> float | None:
+    """transfer_summary over the entries at the families' default magnitudes (a robustness
+    grid also holds other magnitudes)."""
+    if not transfer:
+        return None
+    keys = {p.key for p in default_set()}
+    return transfer_summary({k: v for k, v in transfer.items() if k in keys}, task)

@@ -8,7 +8,7 @@ import optax
 
 from bench.api import Policy, TrainResult
 from methods.bc.config import BCConfig
-from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_loss
+from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_optimizer, make_bc_step
 
 
 @flax.struct.dataclass
@@ -25,17 +25,14 @@ def train(task, demo, config: BCConfig, ctx, seed: int) -> TrainResult:
     # init_key: network weights; loop_key: the per-update sampling noise.
     init_key, loop_key = jax.random.split(jax.random.PRNGKey(seed))
     params = policy.init(init_key, ObsNorm.fit(obs, config.obs_std_min))
-    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                      optax.adam(config.learning_rate))
+    opt = bc_optimizer(config.learning_rate, config.max_grad_norm)
+    bc_step = make_bc_step(policy, opt, obs, actions, config.samples)
     state = TrainingState(params, opt.init(params), loop_key)
 
     def update(s: TrainingState, _):
         key, k = jax.random.split(s.key)
-        loss, g = jax.value_and_grad(
-            lambda p: bc_loss(policy, p, obs, actions, k, config.samples))(s.params)
-        upd, opt_state = opt.update(g, s.opt_state, s.params)
-        return TrainingState(optax.apply_updates(s.params, upd), opt_state, key), (
-            loss, optax.global_norm(g))
+        params, opt_state, loss, gnorm = bc_step(s.params, s.opt_state, k)
+        return TrainingState(params, opt_state, key), (loss, gnorm)
 
     @jax.jit
     def chunk(s: TrainingState):

@@ -10,6 +10,7 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
+import optax
 from brax.training import distribution, networks
 from flax import linen
 
@@ -79,3 +80,21 @@ def bc_loss(policy: TanhGaussianPolicy, params: dict, obs: jax.Array, actions: j
     a = jax.vmap(lambda k: jax.vmap(policy.sample, in_axes=(None, 0, 0))(
         params, obs, jax.random.split(k, obs.shape[0])))(keys)
     return jnp.mean(jnp.sum((a - actions[None]) ** 2, axis=-1))
+
+
+def bc_optimizer(learning_rate: float, max_grad_norm: float):
+    """The original BC bootstrap's optimizer: global-norm clip, then Adam."""
+    return optax.chain(optax.clip_by_global_norm(max_grad_norm), optax.adam(learning_rate))
+
+
+def make_bc_step(policy: TanhGaussianPolicy, opt, obs: jax.Array, actions: jax.Array,
+                 samples: int):
+    """step(params, opt_state, key) -> (params, opt_state, loss, grad_norm): one BC update."""
+
+    def step(params, opt_state, key):
+        loss, g = jax.value_and_grad(
+            lambda p: bc_loss(policy, p, obs, actions, key, samples))(params)
+        upd, opt_state = opt.update(g, opt_state, params)
+        return optax.apply_updates(params, upd), opt_state, loss, optax.global_norm(g)
+
+    return step

@@ -16,7 +16,7 @@ import numpy as np
 import optax
 
 from bench.api import Policy, TrainResult
-from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_loss
+from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_optimizer, make_bc_step
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 
@@ -122,15 +122,12 @@ def make_update(task, policy, goals, norm, config: ILDConfig, reset_key):
 
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
     """Alg. 1 line 3: BC on (o_t, a_t) with its own Adam (same lr and clipping)."""
-    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                      optax.adam(config.learning_rate))
+    opt = bc_optimizer(config.learning_rate, config.max_grad_norm)
+    bc_step = make_bc_step(policy, opt, obs, actions, config.bc_samples)
 
     def update(carry, k):
-        p, o = carry
-        loss, g = jax.value_and_grad(
-            lambda p: bc_loss(policy, p, obs, actions, k, config.bc_samples))(p)
-        upd, o = opt.update(g, o, p)
-        return (optax.apply_updates(p, upd), o), loss
+        p, o, loss, _ = bc_step(*carry, k)
+        return (p, o), loss
 
     (params, _), losses = jax.jit(lambda p, k: jax.lax.scan(
         update, (p, opt.init(p)), jax.random.split(k, config.bc_updates)))(params, key)
