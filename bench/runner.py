@@ -238,7 +238,10 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "status": status, "message": message,
         "final_return": final["return"], "final_normalized": final["normalized"],
         "final_from": "final policy" if status == "ok" else "last valid evaluation",
-        "curve": ctx.curve, "train_metrics": ctx.last_metrics, "transfer": transfer,
+        "curve": ctx.curve, "transfer": transfer,
+        # The last report's metrics, updated with the final ones the method returned.
+        "train_metrics": {**ctx.last_metrics, **({k: float(v) for k, v in
+                                                  result.metrics.items()} if result else {})},
         "transfer_normalized": default_summary(transfer),
         "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),

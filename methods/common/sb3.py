@@ -1,0 +1,236 @@
+"""Stable-Baselines3 glue shared by the RL-based imitation methods (DAC, PWIL).
+
+- `BraxVecEnv`: an SB3 VecEnv over B copies of a task, stepped by ONE jitted, vmapped brax
+  call per vector step (one device->host conversion per step). Auto-reset happens inside the
+  jitted call (and only when some env finished). True termination and time-limit truncation
+  stay distinct: `infos[i]["TimeLimit.truncated"]` is True only for the time limit, and
+  `infos[i]["terminal_observation"]` holds the pre-reset observation (SB3's convention).
+- `BraxGymEnv`: the same task as a single gymnasium.Env (reset/step, terminated vs truncated).
+- `BudgetCallback`: stops SB3's learn() when the harness budget is spent and reports to the
+  RunContext (which evaluates with the method's clock paused), with env-steps/s and updates/s.
+- `torch_policy`: a torch module snapshot as a harness 'host' Policy for the shared evaluator.
+
+The env handed in is the method's gated TaskView env: without Uses(true_reward) its rewards
+are NaN, so a learner can only ever train on the imitation reward its method computes.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import gymnasium as gym
+import jax
+import jax.numpy as jnp
+import numpy as np
+import torch
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+from bench.api import Policy
+
+
+def _select(mask, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)),
+                                               x, y), a, b)
+
+
+def _obs_size(env) -> int:
+    return int(jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1])
+
+
+def _spaces(env):
+    obs = gym.spaces.Box(-np.inf, np.inf, (_obs_size(env),), np.float32)
+    act = gym.spaces.Box(-1.0, 1.0, (int(env.action_size),), np.float32)
+    return obs, act
+
+
+class BraxVecEnv(VecEnv):
+    """`num_envs` copies of a brax env with episodes of `episode_length` steps."""
+
+    render_mode = None
+
+    def __init__(self, env, num_envs: int, episode_length: int, seed: int = 0):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        obs_space, act_space = _spaces(env)
+        super().__init__(num_envs, obs_space, act_space)
+        self.episode_length = int(episode_length)
+        n, T = num_envs, self.episode_length
+
+        def reset(key):
+            key, sub = jax.random.split(key)
+            return jax.vmap(env.reset)(jax.random.split(sub, n)), jnp.zeros(n, jnp.int32), key
+
+        def step(state, t, key, action):
+            nxt = jax.vmap(env.step)(state, action)
+            terminated = nxt.done > 0
+            t1 = t + 1
+            truncated = (t1 >= T) & ~terminated
+            done = terminated | truncated
+            key, sub = jax.random.split(key)
+
+            def with_reset(_):
+                fresh = jax.vmap(env.reset)(jax.random.split(sub, n))
+                return _select(done, fresh, nxt)
+
+            merged = jax.lax.cond(done.any(), with_reset, lambda _: nxt, None)
+            out = (merged.obs, nxt.obs, nxt.reward, terminated, truncated)
+            return merged, jnp.where(done, 0, t1), key, out
+
+        self._reset_fn = jax.jit(reset)
+        self._step_fn = jax.jit(step)
+        self._key = jax.random.PRNGKey(seed)
+        self._carry = None
+        self._actions = None
+
+    def seed(self, seed: int | None = None):
+        if seed is not None:
+            self._key = jax.random.PRNGKey(seed)
+        return [seed] * self.num_envs
+
+    def reset(self):
+        state, t, self._key = self._reset_fn(self._key)
+        self._carry = (state, t)
+        return np.asarray(state.obs, np.float32)
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = jnp.asarray(np.asarray(actions, np.float32).reshape(self.num_envs, -1))
+
+    def step_wait(self):
+        if self._carry is None:
+            raise RuntimeError("BraxVecEnv.step before reset(); call reset() first")
+        state, t = self._carry
+        state, t, self._key, out = self._step_fn(state, t, self._key, self._actions)
+        self._carry = (state, t)
+        obs, term_obs, reward, terminated, truncated = jax.device_get(out)
+        dones = terminated | truncated
+        infos = [{} for _ in range(self.num_envs)]
+        for i in np.flatnonzero(dones):
+            infos[i] = {"terminal_observation": np.asarray(term_obs[i], np.float32),
+                        "TimeLimit.truncated": bool(truncated[i]),
+                        "terminated": bool(terminated[i])}
+        return (np.asarray(obs, np.float32), np.asarray(reward, np.float32), dones, infos)
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name, indices=None):
+        return [getattr(self, attr_name)] * len(self._indices(indices))
+
+    def set_attr(self, attr_name, value, indices=None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name, *args, indices=None, **kwargs):
+        raise AttributeError(f"BraxVecEnv has no per-env method {method_name!r}")
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False] * len(self._indices(indices))
+
+    def _indices(self, indices):
+        if indices is None:
+            return range(self.num_envs)
+        return [indices] if isinstance(indices, int) else indices
+
+
+class BraxGymEnv(gym.Env):
+    """One copy of a brax env as a gymnasium.Env (no auto-reset; time limit = truncated)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, env, episode_length: int):
+        self.observation_space, self.action_space = _spaces(env)
+        self.episode_length = int(episode_length)
+        self._reset = jax.jit(env.reset)
+        self._step = jax.jit(env.step)
+        self._state = None
+        self._t = 0
+        self._key = jax.random.PRNGKey(0)
+
+    def reset(self, *, seed: int | None = None, options=None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self._key = jax.random.PRNGKey(seed)
+        self._key, sub = jax.random.split(self._key)
+        self._state = self._reset(sub)
+        self._t = 0
+        return np.asarray(self._state.obs, np.float32), {}
+
+    def step(self, action):
+        if self._state is None:
+            raise RuntimeError("BraxGymEnv.step before reset(); call reset() first")
+        self._state = self._step(self._state, jnp.asarray(action, jnp.float32))
+        self._t += 1
+        terminated = bool(self._state.done > 0)
+        truncated = (self._t >= self.episode_length) and not terminated
+        return (np.asarray(self._state.obs, np.float32), float(self._state.reward), terminated,
+                truncated, {})
+
+
+def torch_policy(module: torch.nn.Module, obs_fn: Callable[[np.ndarray], np.ndarray] = None,
+                 noise_std: float = 0.0) -> Policy:
+    """Snapshot `module` (obs -> action in [-1, 1]) as a 'host' Policy.
+
+    Parameters are copied to numpy (the harness checks them for NaN); acting runs the module
+    functionally on those arrays (no copy back). `obs_fn` maps env observations to the
+    module's input (e.g. DAC's absorbing indicator). Stochastic evaluation adds the method's
+    exploration noise `noise_std` and clips, as the learner acts while collecting."""
+    params = {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
+    return Policy(act=_TorchAct(module, obs_fn, noise_std), params=params, kind="host")
+
+
+class _TorchAct:
+    def __init__(self, module, obs_fn, noise_std):
+        self.module, self.obs_fn, self.noise_std = module, obs_fn, noise_std
+
+    def __call__(self, params, obs, rng, deterministic):
+        x = np.array(obs, np.float32)  # a writable copy (jax hands out read-only arrays)
+        if self.obs_fn is not None:
+            x = self.obs_fn(x)
+        tensors = {k: torch.from_numpy(v) for k, v in params.items()}
+        with torch.no_grad():
+            a = torch.func.functional_call(self.module, tensors, (torch.from_numpy(x),))
+        a = a.numpy()
+        if not deterministic and self.noise_std > 0:
+            a = np.clip(a + rng.normal(0.0, self.noise_std, a.shape), -1.0, 1.0)
+        return a.astype(np.float32)
+
+
+class BudgetCallback(BaseCallback):
+    """Ends learn() when the harness budget is spent; reports to the RunContext every
+    `report_every` env steps with throughput metrics (env-steps/s, updates/s)."""
+
+    def __init__(self, ctx, make_policy: Callable[[], Policy], report_every: int,
+                 metrics_fn: Callable[[], dict] = lambda: {}):
+        super().__init__()
+        self.ctx = ctx
+        self.make_policy = make_policy
+        self.report_every = int(report_every)
+        self.metrics_fn = metrics_fn
+        self._next = 0
+        self._t0 = None
+
+    def _on_training_start(self) -> None:
+        self._t0 = self.ctx.elapsed()
+
+    def throughput(self) -> dict:
+        dt = max(self.ctx.elapsed() - (self._t0 or 0.0), 1e-9)
+        return {"speed/env_steps_per_s": self.model.num_timesteps / dt,
+                "speed/updates_per_s": self.model._n_updates / dt,
+                "train/updates": self.model._n_updates}
+
+    def _on_step(self) -> bool:
+        steps = self.model.num_timesteps
+        if steps >= self._next:
+            self._next = steps + self.report_every
+            self.ctx.report(self.make_policy(), env_steps=steps,
+                            metrics={**self.throughput(), **self.metrics_fn()})
+        return not self.ctx.should_stop(steps)
+
+
+def set_torch_threads(n: int) -> None:
+    """Deliberate torch intra-op threads (the learner's updates set the pace on a CPU)."""
+    torch.set_num_threads(int(n))
+
+
+def seed_everything(seed: int) -> None:
+    np.random.seed(seed)  # SB3's replay sampling uses the global numpy RNG
+    torch.manual_seed(seed)

@@ -1,0 +1,132 @@
+"""The SB3 adapter: batched brax VecEnv, single gymnasium env, gating, budgets via callbacks."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.envs.base import Wrapper
+
+from bench.access import TaskView
+from bench.api import Uses
+from bench.budget import Budget
+from bench.evaluator import EvalConfig
+from bench.runner import RunRequest, execute, prepare
+from methods.common.sb3 import BraxGymEnv, BraxVecEnv, torch_policy
+from tasks import make_task
+
+T = 128
+
+
+class Terminating(Wrapper):
+    """pointmass that truly terminates once x > 1.2 (the tests' early-termination task)."""
+
+    def step(self, state, action):
+        s = self.env.step(state, action)
+        return s.replace(done=jnp.asarray(s.obs[0] > 1.2, jnp.float32))
+
+
+def test_vecenv_truncates_at_the_time_limit_and_matches_a_plain_rollout():
+    task = make_task("pointmass")
+    venv = BraxVecEnv(task.env, num_envs=4, episode_length=T, seed=3)
+    obs = venv.reset()
+    assert obs.shape == (4, task.obs_size) and obs.dtype == np.float32
+    # Reference: the same first states stepped by the unwrapped env with the same actions.
+    state = venv._carry[0]
+    rng = np.random.default_rng(0)
+    for t in range(T):
+        a = rng.uniform(-1, 1, (4, task.action_size)).astype(np.float32)
+        ref = jax.vmap(task.env.step)(state, jnp.asarray(a))
+        state = ref
+        venv.step_async(a)
+        obs, rew, dones, infos = venv.step_wait()
+        if t < T - 1:
+            assert not dones.any()
+            np.testing.assert_allclose(obs, np.asarray(ref.obs), atol=1e-6)
+            np.testing.assert_allclose(rew, np.asarray(ref.reward), atol=1e-6)
+    assert dones.all()
+    for i in range(4):
+        assert infos[i]["TimeLimit.truncated"] and not infos[i]["terminated"]
+        np.testing.assert_allclose(infos[i]["terminal_observation"], np.asarray(ref.obs[i]),
+                                   atol=1e-6)
+    # Auto-reset: the returned observation starts a new episode (x near the start 1.0).
+    assert np.all(np.abs(obs[:, 0] - 1.0) < 0.5)
+    assert not np.allclose(obs, np.asarray(ref.obs))
+
+
+def test_vecenv_true_termination_is_not_truncation():
+    env = Terminating(make_task("pointmass").env)
+    venv = BraxVecEnv(env, num_envs=3, episode_length=T, seed=0)
+    venv.reset()
+    seen = []
+    for t in range(40):
+        venv.step_async(np.ones((3, 1), np.float32))  # full thrust: x passes 1.2 quickly
+        obs, _, dones, infos = venv.step_wait()
+        for i in np.flatnonzero(dones):
+            seen.append((t, infos[i]["terminated"], infos[i]["TimeLimit.truncated"],
+                         infos[i]["terminal_observation"][0]))
+    assert seen, "full thrust never crossed x = 1.2"
+    assert all(term and not trunc and x > 1.2 for _, term, trunc, x in seen)
+    assert seen[0][0] < T - 1
+
+
+def test_gated_env_hides_the_reward_from_an_imitation_learner():
+    task = make_task("pointmass")
+    view = TaskView(task, Uses(demo_states=True, demo_actions=True), "dac")
+    venv = BraxVecEnv(view.env, num_envs=2, episode_length=T)
+    venv.reset()
+    venv.step_async(np.zeros((2, 1), np.float32))
+    _, rew, _, _ = venv.step_wait()
+    assert np.isnan(rew).all()
+
+
+def test_single_gym_env_passes_sb3_checker_and_truncates():
+    from stable_baselines3.common.env_checker import check_env
+    env = BraxGymEnv(Terminating(make_task("pointmass").env), episode_length=T)
+    check_env(env, warn=True)
+    env.reset(seed=1)
+    for t in range(T):
+        _, r, term, trunc, _ = env.step(np.zeros(1, np.float32))  # no thrust: never past 1.2
+        assert np.isfinite(r) and not term
+        assert trunc == (t == T - 1)
+    env.reset(seed=1)
+    for t in range(T):
+        _, _, term, trunc, _ = env.step(np.ones(1, np.float32))
+        if term:
+            break
+    assert term and not trunc
+
+
+def test_torch_policy_snapshot_is_frozen_and_checkable():
+    import torch
+    net = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.Tanh())
+    pol = torch_policy(net, noise_std=0.5)
+    obs = np.ones((3, 2), np.float32)
+    a0 = pol.act(pol.params, obs, np.random.default_rng(0), True)
+    with torch.no_grad():
+        net[0].weight.add_(1.0)  # training after the snapshot must not change it
+    np.testing.assert_array_equal(pol.act(pol.params, obs, np.random.default_rng(0), True), a0)
+    noisy = pol.act(pol.params, obs, np.random.default_rng(0), False)
+    assert noisy.shape == a0.shape and np.all(np.abs(noisy) <= 1) and not np.allclose(noisy, a0)
+
+
+TINY = dict(actor_hidden="32,32", critic_hidden="32,32", learning_starts=256, batch_size=32,
+            num_envs=8, steps_per_collect=64, report_every=256)
+
+
+@pytest.mark.parametrize("method,extra", [
+    ("dac", dict(disc_hidden="32,32", disc_batch=32, actor_start_updates=64)),
+    ("pwil", dict(prefill=512)),
+])
+def test_rl_imitation_methods_respect_the_step_budget_and_record_throughput(store, method,
+                                                                           extra):
+    req = RunRequest(method=method, task="pointmass", seed=0,
+                     budget=Budget(env_steps=1024, evals=2), overrides={**TINY, **extra},
+                     eval=EvalConfig(num_episodes=4))
+    rec, _ = execute(prepare(req), store, log=lambda s: None)
+    assert rec["status"] == "ok", rec.get("message")
+    assert 1024 <= rec["env_steps"] < 1024 + 8  # stops within one vector step of the budget
+    assert rec["train_metrics"]["speed/env_steps_per_s"] > 0
+    assert rec["train_metrics"]["speed/updates_per_s"] > 0
+    # UTD 1: one update per env step after learning starts (to within one collection).
+    assert abs(rec["train_metrics"]["train/updates"] - (1024 - 256)) <= 64
+    assert rec["curve"] and rec["final_from"] == "final policy"
+    assert np.isfinite(rec["final_return"])
