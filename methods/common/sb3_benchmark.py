@@ -1,0 +1,115 @@
+"""Speed of the SB3-based imitation methods vs plain SB3 TD3, side by side in one run.
+
+    python -m methods.common.sb3_benchmark --task hopper --steps 1024 [--repeats 2]
+                                           [--threads 2] [--out results/sb3_speed.csv]
+
+For each method (dac, pwil) the plain learner is SB3's own TD3 with the SAME settings
+(networks, batch, update-to-data ratio, vectorized env) on the task's true reward; the method
+adds its imitation reward (and DAC its discriminator updates and absorbing states). Each
+measures env-steps/s over `steps` env steps after learning has started (warm-up excluded);
+runs alternate plain/method `repeats` times so machine drift hits both. Target: method /
+plain >= 0.8 (the imitation reward must not dominate the cost).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+import numpy as np
+
+from bench.access import TaskView
+from bench.api import Uses
+from methods.common.sb3 import BraxVecEnv, seed_everything, set_torch_threads
+from methods.dac.config import DACConfig
+from methods.pwil.config import PWILConfig
+from tasks import make_task
+from tasks.demo import load_demo
+
+importlib.import_module("methods.dac")
+importlib.import_module("methods.pwil")
+dac = sys.modules["methods.dac.train"]
+pwil = sys.modules["methods.pwil.train"]
+
+IMITATION = Uses(demo_states=True, demo_actions=True)
+
+
+def _time(model, steps: int, warmup: int) -> float:
+    model.learn(total_timesteps=warmup)
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=steps, reset_num_timesteps=False)
+    return steps / (time.perf_counter() - t0)
+
+
+def builders(task_name: str):
+    task = make_task(task_name)
+    demo = load_demo(task.spec.demo_path, task)
+    gated = TaskView(task, IMITATION, "bench").env
+    T = task.episode_length
+
+    def dac_plain():
+        c = DACConfig()
+        return dac.build_model(BraxVecEnv(task.env, c.num_envs, T), c, None, None, 0,
+                               plain=True), c
+
+    def dac_method():
+        c = DACConfig()
+        o, a = dac.expert_transitions(demo, c, np.random.default_rng(0))
+        env = dac.AbsorbingWrapper(BraxVecEnv(gated, c.num_envs, T))
+        return dac.build_model(env, c, o, a, 0), c
+
+    def pwil_plain():
+        c = PWILConfig()
+        return pwil.build_model(BraxVecEnv(task.env, c.num_envs, T), c, 0), c
+
+    def pwil_method():
+        c = PWILConfig()
+        atoms, obs, act = pwil.expert_atoms(demo, c)
+        r = pwil.PWILRewarder(atoms, c.num_envs, c.horizon, c.alpha, c.beta)
+        env = pwil.PWILReward(BraxVecEnv(gated, c.num_envs, T), r, c.use_actions)
+        model = pwil.build_model(env, c, 0)
+        pwil.prefill(model, obs, act, c.alpha, c.prefill)
+        return model, c
+
+    return {"dac": (dac_plain, dac_method), "pwil": (pwil_plain, pwil_method)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", default="hopper")
+    ap.add_argument("--methods", default="dac,pwil")
+    ap.add_argument("--steps", type=int, default=1024)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=None, help="append rows to this CSV")
+    args = ap.parse_args(argv)
+    set_torch_threads(args.threads)
+    rows = []
+    for name, (plain, method) in builders(args.task).items():
+        if name not in args.methods.split(","):
+            continue
+        rates = {"plain": [], "method": []}
+        for _ in range(args.repeats):
+            for kind, build in (("plain", plain), ("method", method)):
+                seed_everything(0)
+                model, cfg = build()
+                rates[kind].append(_time(model, args.steps, cfg.learning_starts + 256))
+        p, m = np.median(rates["plain"]), np.median(rates["method"])
+        rows.append(dict(task=args.task, method=name, threads=args.threads, steps=args.steps,
+                         plain_td3_steps_per_s=round(p, 1), method_steps_per_s=round(m, 1),
+                         ratio=round(m / p, 3)))
+        print(f"{args.task:>10s} {name:>5s}: plain TD3 {p:7.1f} env-steps/s, {name} {m:7.1f} "
+              f"env-steps/s, ratio {m / p:.2f} (target >= 0.8; threads {args.threads})",
+              flush=True)
+    if args.out:
+        import os
+
+        import pandas as pd
+        df = pd.DataFrame(rows)
+        df.to_csv(args.out, mode="a", header=not os.path.exists(args.out), index=False)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
