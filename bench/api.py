@@ -52,11 +52,17 @@ class Policy:
     kind 'jax_state': act(params, env_state, key, deterministic) -> action: acts on the full
                       simulator state (planners); allowed only with Uses(sim_at_test=True).
     `act` should be one stable function object per run so the evaluator compiles it once.
+
+    Stateful JAX policies (planners that warm-start from their previous plan) also set
+    `init_memory(params, key) -> memory`; their act is then
+    act(params, x, key, deterministic, memory) -> (action, memory), and the evaluator carries
+    the memory through the episode (reset with the episode).
     """
 
     act: Callable[..., Any]
     params: Any
     kind: PolicyKind = "jax"
+    init_memory: Callable[..., Any] | None = None
 
 
 @dataclasses.dataclass

@@ -76,20 +76,26 @@ def _step_masked(env, s, a, alive, ret, length):
 
 
 @functools.lru_cache(maxsize=64)
-def _jax_episodes(env, act, kind, horizon: int, deterministic: bool):
+def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory=None):
     """jit(vmap(one episode)) for a JAX policy; cached per (env, act) so it compiles once."""
 
     def episode(params, key):
-        k_reset, k_act = jax.random.split(key)
+        k_reset, k_act = jax.random.split(key)  # as before memory existed: same episodes
         s = env.reset(k_reset)
 
         def body(carry, k):
-            s, alive, ret, length = carry
-            a = act(params, s if kind == "jax_state" else s.obs, k, deterministic)
-            return _step_masked(env, s, a, alive, ret, length), None
+            (s, alive, ret, length), mem = carry
+            x = s if kind == "jax_state" else s.obs
+            if init_memory is None:
+                a = act(params, x, k, deterministic)
+            else:
+                a, mem = act(params, x, k, deterministic, mem)
+            return (_step_masked(env, s, a, alive, ret, length), mem), None
 
-        init = (s, jnp.ones(()), jnp.zeros(()), jnp.zeros(()))
-        (_, _, ret, length), _ = jax.lax.scan(body, init, jax.random.split(k_act, horizon))
+        mem = None if init_memory is None else init_memory(params, jax.random.fold_in(k_act, 1))
+        init = ((s, jnp.ones(()), jnp.zeros(()), jnp.zeros(())), mem)
+        ((_, _, ret, length), _), _ = jax.lax.scan(body, init,
+                                                   jax.random.split(k_act, horizon))
         return ret, length
 
     return jax.jit(jax.vmap(episode, in_axes=(None, 0)))
@@ -106,7 +112,8 @@ def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
                  deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
     keys = jax.random.split(key, num_episodes)
     if policy.kind in ("jax", "jax_state"):
-        f = _jax_episodes(task.env, policy.act, policy.kind, task.episode_length, deterministic)
+        f = _jax_episodes(task.env, policy.act, policy.kind, task.episode_length, deterministic,
+                          policy.init_memory)
         ret, length = f(policy.params, keys)
         return np.asarray(ret, np.float64), np.asarray(length, np.int64)
     if policy.kind != "host":

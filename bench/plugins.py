@@ -60,8 +60,10 @@ def _load_all() -> None:
         if not info.ispkg or info.name.startswith("_") or info.name == "common":
             continue
         module = importlib.import_module(f"methods.{info.name}")
-        if hasattr(module, "METHOD"):
-            register(module.METHOD, source=f"methods/{info.name}")
+        # A folder is one method (METHOD) or a family sharing code (METHODS).
+        for spec in getattr(module, "METHODS", None) or [getattr(module, "METHOD", None)]:
+            if spec is not None:
+                register(spec, source=f"methods/{info.name}")
     for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
         if ep.value.startswith("methods."):  # our own methods, if the install lists them
             continue

@@ -1,0 +1,96 @@
+"""CEM-MPC: reaches the goal on pointmass, deterministic for a fixed seed, honest about the
+simulator at test time, and the tracking variant reads no reward."""
+import importlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bench.api import Policy
+from bench.budget import Budget
+from bench.evaluator import EvalConfig, Evaluator
+from bench.runner import RunRequest, execute, prepare
+from methods.cem_mpc.config import CEMConfig
+from tasks import make_task
+
+importlib.import_module("methods.cem_mpc")
+cem = sys.modules["methods.cem_mpc.train"]
+SMALL = CEMConfig(population=64, elites=8, iterations=3, horizon=16)
+
+
+def _episode(planner, key, steps=128):
+    env = make_task("pointmass").env
+    s = env.reset(jax.random.PRNGKey(7))
+    mem = planner.init_memory((), None)
+    act = jax.jit(lambda s, k, m: planner.act((), s, k, True, m))
+    xs, actions = [], []
+    for k in jax.random.split(key, steps):
+        a, mem = act(s, k, mem)
+        s = env.step(s, a)
+        xs.append(float(s.obs[0]))
+        actions.append(np.asarray(a))
+    return np.array(xs), np.array(actions), mem
+
+
+def test_cem_on_the_true_reward_reaches_the_goal():
+    planner = cem.CEMPlanner(make_task("pointmass").env, 1, SMALL)
+    xs, _, (plan, t) = _episode(planner, jax.random.PRNGKey(0))
+    assert abs(xs[0]) > 0.5           # starts away from the goal at 0
+    assert np.all(np.abs(xs[-20:]) < 0.05), xs[-20:]
+    assert int(t) == 128 and plan.shape == (16, 1)
+
+
+def test_planning_is_deterministic_for_a_fixed_seed():
+    planner = cem.CEMPlanner(make_task("pointmass").env, 1, SMALL)
+    _, a1, _ = _episode(planner, jax.random.PRNGKey(3), steps=10)
+    _, a2, _ = _episode(planner, jax.random.PRNGKey(3), steps=10)
+    _, a3, _ = _episode(planner, jax.random.PRNGKey(4), steps=10)
+    np.testing.assert_array_equal(a1, a2)
+    assert not np.array_equal(a1, a3)
+
+
+def test_warm_start_shifts_the_plan():
+    planner = cem.CEMPlanner(make_task("pointmass").env, 1, SMALL)
+    env = make_task("pointmass").env
+    s = env.reset(jax.random.PRNGKey(0))
+    mem = (jnp.arange(16.0)[:, None] / 16, jnp.zeros((), jnp.int32))
+    cfg = CEMConfig(population=8, elites=8, iterations=1, horizon=16, momentum=0.999)
+    p = cem.CEMPlanner(env, 1, cfg)
+    a, (plan, t) = p.act((), s, jax.random.PRNGKey(0), True, mem)
+    # Momentum ~1 keeps the mean: the action is the old plan's first step and the new plan
+    # is the old one shifted by one step with a zero appended.
+    assert float(a[0]) == pytest.approx(0.0, abs=2e-3)
+    np.testing.assert_allclose(np.asarray(plan[:-1, 0]), np.arange(1, 16) / 16, atol=2e-3)
+    assert float(plan[-1, 0]) == 0.0 and int(t) == 1
+
+
+def test_the_planner_needs_sim_at_test_to_be_scored():
+    task = make_task("pointmass")
+    planner = cem.CEMPlanner(task.env, 1, SMALL)
+    pol = Policy(planner.act, (), kind="jax_state", init_memory=planner.init_memory)
+    with pytest.raises(PermissionError, match="sim_at_test"):
+        Evaluator(task, EvalConfig(num_episodes=2)).evaluate(pol, 0)
+
+
+@pytest.mark.parametrize("method", ["cem_mpc", "cem_mpc_track"])
+def test_cem_methods_run_and_record_planning_time(store, method):
+    req = RunRequest(method=method, task="pointmass", seed=0, budget=Budget(seconds=60),
+                     preset="cpu", eval=EvalConfig(num_episodes=4))
+    rec, _ = execute(prepare(req), store, log=lambda s: None)
+    assert rec["status"] == "ok", rec["message"]
+    assert rec["reference_method"] and rec["uses"]["sim_at_test"]
+    # track reads no reward (its env's rewards are NaN: a reward-reading planner would fail)
+    assert rec["uses"]["true_reward"] == (method == "cem_mpc")
+    assert rec["config"]["objective"] == ("reward" if method == "cem_mpc" else "track")
+    assert rec["train_metrics"]["plan/ms_per_step"] > 0
+    assert rec["final_normalized"] > 0.9
+
+
+def test_objective_must_match_the_method(store):
+    req = RunRequest(method="cem_mpc", task="pointmass", seed=0, budget=Budget(seconds=60),
+                     preset="cpu", overrides={"objective": "track"},
+                     eval=EvalConfig(num_episodes=2))
+    rec, _ = execute(prepare(req), store, log=lambda s: None)
+    assert rec["status"] == "failed" and "cem_mpc_track" in rec["message"]
