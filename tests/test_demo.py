@@ -112,7 +112,12 @@ def test_demo_of_another_width_is_rejected(demo, tmp_path):
         load_demo(p, make_task(TASK))
 
 
-@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher"])
+REPLAY_ATOL = {"hopper": 5e-4}  # spring contacts, float32; demos rolled out vmapped: max |diff| over all 16 demos 1.7e-4 (obs up to 10)
+"""Per-task tolerance of the open-loop replay (1e-5 unless stated: measured, not guessed)."""
+
+
+@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher",
+                                  pytest.param("hopper", marks=pytest.mark.slow)])
 def test_replaying_demo_actions_reproduces_states(name):
     """State t is BEFORE action t: env.reset(init_key) gives s_0; stepping a_t gives s_{t+1}."""
     task = make_task(name)
@@ -132,9 +137,10 @@ def test_replaying_demo_actions_reproduces_states(name):
     for k in range(min(3, demo.num_demos)):
         states, obs, rew = jax.jit(replay)(jnp.asarray(demo.init_keys[k]),
                                             jnp.asarray(demo.actions[k]))
-        np.testing.assert_allclose(states, demo.states[k], atol=1e-5)
-        np.testing.assert_allclose(obs, demo.obs[k], atol=1e-5)
-        np.testing.assert_allclose(rew, demo.rewards[k], atol=1e-5)
+        tol = REPLAY_ATOL.get(name, 1e-5)
+        np.testing.assert_allclose(states, demo.states[k], atol=tol)
+        np.testing.assert_allclose(obs, demo.obs[k], atol=tol)
+        np.testing.assert_allclose(rew, demo.rewards[k], atol=tol)
 
 
 def test_top_k_and_bounds(demo):
