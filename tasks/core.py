@@ -52,6 +52,28 @@ def _build_env(spec: TaskSpec) -> Env:
     raise ValueError(f"task {spec.name!r}: cannot build env {spec.env!r}")
 
 
+def env_obs_size(env: Env) -> int:
+    """Observation width of a (possibly wrapped) env. brax's env.observation_size runs
+    reset() op by op (seconds for humanoid); an abstract trace gives the same shape in
+    milliseconds."""
+    return int(jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1])
+
+
+def reset_done(env: Env, state: State, done: jax.Array, key: jax.Array) -> State:
+    """Batched `state` with the envs where `done` replaced by fresh resets (one key each,
+    split from `key`); the resets are computed only when some env is done, and carry no
+    gradient."""
+    n = done.shape[0]
+
+    def with_reset(_):
+        fresh = jax.lax.stop_gradient(jax.vmap(env.reset)(jax.random.split(key, n)))
+        return jax.tree.map(
+            lambda f, x: jnp.where(done.reshape(done.shape + (1,) * (x.ndim - 1)), f, x),
+            fresh, state)
+
+    return jax.lax.cond(done.any(), with_reset, lambda _: state, None)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Task:
     """A task ready to run. `env` is always the *unwrapped* environment (no auto-reset,
@@ -70,9 +92,7 @@ class Task:
 
     @functools.cached_property
     def obs_size(self) -> int:
-        # brax's env.observation_size runs reset() op by op (seconds for humanoid); an
-        # abstract trace gives the same shape in milliseconds.
-        return int(jax.eval_shape(self.env.reset, jax.random.PRNGKey(0)).obs.shape[-1])
+        return env_obs_size(self.env)
 
     @property
     def action_size(self) -> int:

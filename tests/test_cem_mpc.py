@@ -52,7 +52,6 @@ def test_planning_is_deterministic_for_a_fixed_seed():
 
 
 def test_warm_start_shifts_the_plan():
-    planner = cem.CEMPlanner(make_task("pointmass").env, 1, SMALL)
     env = make_task("pointmass").env
     s = env.reset(jax.random.PRNGKey(0))
     mem = (jnp.arange(16.0)[:, None] / 16, jnp.zeros((), jnp.int32))

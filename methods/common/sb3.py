@@ -23,22 +23,15 @@ import jax.numpy as jnp
 import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecEnv
 
 from bench.api import Policy
-
-
-def _select(mask, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)),
-                                               x, y), a, b)
-
-
-def _obs_size(env) -> int:
-    return int(jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1])
+from tasks.core import env_obs_size, reset_done
 
 
 def _spaces(env):
-    obs = gym.spaces.Box(-np.inf, np.inf, (_obs_size(env),), np.float32)
+    obs = gym.spaces.Box(-np.inf, np.inf, (env_obs_size(env),), np.float32)
     act = gym.spaces.Box(-1.0, 1.0, (int(env.action_size),), np.float32)
     return obs, act
 
@@ -67,12 +60,7 @@ class BraxVecEnv(VecEnv):
             truncated = (t1 >= T) & ~terminated
             done = terminated | truncated
             key, sub = jax.random.split(key)
-
-            def with_reset(_):
-                fresh = jax.vmap(env.reset)(jax.random.split(sub, n))
-                return _select(done, fresh, nxt)
-
-            merged = jax.lax.cond(done.any(), with_reset, lambda _: nxt, None)
+            merged = reset_done(env, nxt, done, sub)
             out = (merged.obs, nxt.obs, nxt.reward, terminated, truncated)
             return merged, jnp.where(done, 0, t1), key, out
 
@@ -224,6 +212,41 @@ class BudgetCallback(BaseCallback):
             self.ctx.report(self.make_policy(), env_steps=steps,
                             metrics={**self.throughput(), **self.metrics_fn()})
         return not self.ctx.should_stop(steps)
+
+
+def check_collection(config) -> None:
+    """A collection of `steps_per_collect` env steps must be whole vector steps."""
+    if config.steps_per_collect % config.num_envs:
+        raise ValueError(f"steps_per_collect ({config.steps_per_collect}) must be a multiple "
+                         f"of num_envs ({config.num_envs})")
+
+
+def td3_kwargs(env, config, learning_rate: float, seed: int) -> dict:
+    """SB3 TD3 arguments the TD3-based learners share, from their configs' common fields:
+    `steps_per_collect` env steps over `num_envs` envs per collection, then
+    updates_per_step x that many updates; Gaussian exploration; actor/critic sizes; CPU."""
+    act_dim = env.action_space.shape[0]
+    return dict(
+        policy="MlpPolicy", env=env, learning_rate=learning_rate,
+        buffer_size=config.buffer_size, learning_starts=config.learning_starts,
+        batch_size=config.batch_size, tau=config.tau, gamma=config.gamma,
+        train_freq=(config.steps_per_collect // config.num_envs, "step"),
+        gradient_steps=max(1, round(config.updates_per_step * config.steps_per_collect)),
+        action_noise=NormalActionNoise(np.zeros(act_dim),
+                                       config.exploration_noise * np.ones(act_dim)),
+        policy_kwargs=dict(net_arch=dict(pi=list(config.actor_hidden),
+                                         qf=list(config.critic_hidden))),
+        seed=seed, device="cpu", verbose=0)
+
+
+def learn_within_budget(model, ctx, make_policy: Callable[[], Policy], report_every: int,
+                        metrics_fn: Callable[[], dict] = lambda: {}) -> BudgetCallback:
+    """model.learn() until the harness budget is spent (env steps, or seconds through the
+    callback); returns the callback for its throughput numbers."""
+    cb = BudgetCallback(ctx, make_policy, report_every, metrics_fn=metrics_fn)
+    total = ctx.budget.env_steps if ctx.budget.env_steps is not None else 10 ** 12
+    model.learn(total_timesteps=total, callback=cb)
+    return cb
 
 
 def set_torch_threads(n: int) -> None:

@@ -43,6 +43,8 @@ def _time(model, steps: int, warmup: int) -> float:
 
 
 def builders(task_name: str):
+    """name -> (plain TD3 with the method's settings on the true reward, the method)."""
+    from stable_baselines3 import TD3
     task = make_task(task_name)
     demo = load_demo(task.spec.demo_path, task)
     gated = TaskView(task, IMITATION, "bench").env
@@ -50,14 +52,11 @@ def builders(task_name: str):
 
     def dac_plain():
         c = DACConfig()
-        return dac.build_model(BraxVecEnv(task.env, c.num_envs, T), c, None, None, 0,
-                               plain=True), c
+        return TD3(**dac.td3_settings(BraxVecEnv(task.env, c.num_envs, T), c, 0)), c
 
     def dac_method():
         c = DACConfig()
-        o, a = dac.expert_transitions(demo, c, np.random.default_rng(0))
-        env = dac.AbsorbingWrapper(BraxVecEnv(gated, c.num_envs, T))
-        return dac.build_model(env, c, o, a, 0), c
+        return dac.make_learner(gated, T, demo, c, 0), c
 
     def pwil_plain():
         c = PWILConfig()
@@ -65,12 +64,7 @@ def builders(task_name: str):
 
     def pwil_method():
         c = PWILConfig()
-        atoms, obs, act = pwil.expert_atoms(demo, c)
-        r = pwil.PWILRewarder(atoms, c.num_envs, c.horizon, c.alpha, c.beta)
-        env = pwil.PWILReward(BraxVecEnv(gated, c.num_envs, T), r, c.use_actions)
-        model = pwil.build_model(env, c, 0)
-        pwil.prefill(model, obs, act, c.alpha, c.prefill)
-        return model, c
+        return pwil.make_learner(gated, T, demo, c, 0)[0], c
 
     return {"dac": (dac_plain, dac_method), "pwil": (pwil_plain, pwil_method)}
 

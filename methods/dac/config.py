@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from methods.common.sb3 import check_collection
+
 
 @dataclasses.dataclass(frozen=True)
 class DACConfig:
@@ -67,9 +69,7 @@ class DACConfig:
                      "actor_lr_halving_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.steps_per_collect % self.num_envs:
-            raise ValueError(f"steps_per_collect ({self.steps_per_collect}) must be a multiple "
-                             f"of num_envs ({self.num_envs})")
+        check_collection(self)
         if self.gp_weight < 0:
             raise ValueError(f"gp_weight must be >= 0, got {self.gp_weight}")
 

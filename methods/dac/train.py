@@ -17,13 +17,12 @@ import torch
 import torch.nn.functional as F
 from stable_baselines3 import TD3
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.utils import polyak_update, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
-from methods.common.sb3 import (BraxVecEnv, BudgetCallback, seed_everything, set_torch_threads,
-                                torch_policy)
+from methods.common.sb3 import (BraxVecEnv, learn_within_budget, seed_everything,
+                                set_torch_threads, td3_kwargs, torch_policy)
 from methods.dac.config import DACConfig
 
 import gymnasium as gym
@@ -277,48 +276,42 @@ def expert_transitions(demo, config: DACConfig, rng: np.random.Generator):
     return add_indicator(o), a
 
 
-def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int,
-                plain: bool = False) -> TD3:
-    """The DAC learner on `env` (or, with plain=True, SB3's own TD3 with the same settings,
-    for the speed benchmark)."""
-    act_dim = env.action_space.shape[0]
-    kwargs = dict(
-        policy="MlpPolicy", env=env, learning_rate=config.critic_lr,
-        buffer_size=config.buffer_size, learning_starts=config.learning_starts,
-        batch_size=config.batch_size, tau=config.tau, gamma=config.gamma,
-        train_freq=(config.steps_per_collect // config.num_envs, "step"),
-        gradient_steps=max(1, round(config.updates_per_step * config.steps_per_collect)),
-        action_noise=NormalActionNoise(np.zeros(act_dim), config.exploration_noise
-                                       * np.ones(act_dim)),
-        policy_delay=config.policy_delay, target_policy_noise=config.target_noise,
-        target_noise_clip=config.target_noise_clip,
-        policy_kwargs=dict(net_arch=dict(pi=list(config.actor_hidden),
-                                         qf=list(config.critic_hidden))),
-        seed=seed, device="cpu", verbose=0)
-    if plain:
-        return TD3(**kwargs)
-    obs_dim = env.observation_space.shape[0]
+def td3_settings(env, config: DACConfig, seed: int) -> dict:
+    """SB3 TD3 arguments with DAC's values (also the plain-TD3 baseline of the benchmark)."""
+    return dict(td3_kwargs(env, config, config.critic_lr, seed), policy_delay=config.policy_delay,
+                target_policy_noise=config.target_noise,
+                target_noise_clip=config.target_noise_clip)
+
+
+def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int) -> DACTD3:
+    """The DAC learner on `env` (an AbsorbingWrapper'ed vector env)."""
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     disc = Discriminator(obs_dim, act_dim, config.disc_hidden, config.disc_lr, config.gp_weight)
-    model = DACTD3(**kwargs, replay_buffer_class=FlatReplayBuffer, discriminator=disc,
-                   expert_obs=expert_obs, expert_actions=expert_actions, dac=config)
+    model = DACTD3(**td3_settings(env, config, seed), replay_buffer_class=FlatReplayBuffer,
+                   discriminator=disc, expert_obs=expert_obs, expert_actions=expert_actions,
+                   dac=config)
     orthogonal_td3_init(model)
     return model
+
+
+def make_learner(env, episode_length: int, demo, config: DACConfig, seed: int) -> DACTD3:
+    """DAC on `num_envs` copies of the (gated) brax env, with the demo's subsampled expert
+    transitions."""
+    venv = AbsorbingWrapper(BraxVecEnv(env, config.num_envs, episode_length, seed))
+    expert_obs, expert_act = expert_transitions(demo, config, np.random.default_rng(seed))
+    return build_model(venv, config, expert_obs, expert_act, seed)
 
 
 def train(task, demo, config: DACConfig, ctx, seed: int) -> TrainResult:
     set_torch_threads(config.torch_threads)
     seed_everything(seed)
-    env = AbsorbingWrapper(BraxVecEnv(task.env, config.num_envs, task.episode_length, seed))
-    expert_obs, expert_act = expert_transitions(demo, config, np.random.default_rng(seed))
-    model = build_model(env, config, expert_obs, expert_act, seed)
+    model = make_learner(task.env, task.episode_length, demo, config, seed)
 
     def policy():
         return torch_policy(model.actor, obs_fn=add_indicator,
                             noise_std=config.exploration_noise)
 
-    cb = BudgetCallback(ctx, policy, config.report_every, metrics_fn=lambda: model.metrics)
-    total = ctx.budget.env_steps if ctx.budget.env_steps is not None else 10 ** 12
-    model.learn(total_timesteps=total, callback=cb)
+    cb = learn_within_budget(model, ctx, policy, config.report_every, lambda: model.metrics)
     return TrainResult(policy(), env_steps=int(model.num_timesteps),
                        metrics={**cb.throughput(), **model.metrics,
-                                "train/expert_transitions": len(expert_obs)})
+                                "train/expert_transitions": len(model.expert_obs)})

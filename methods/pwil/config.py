@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from methods.common.sb3 import check_collection
+
 
 @dataclasses.dataclass(frozen=True)
 class PWILConfig:
@@ -64,9 +66,7 @@ class PWILConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.prefill < 0:
             raise ValueError(f"prefill must be >= 0, got {self.prefill}")
-        if self.steps_per_collect % self.num_envs:
-            raise ValueError(f"steps_per_collect ({self.steps_per_collect}) must be a multiple "
-                             f"of num_envs ({self.num_envs})")
+        check_collection(self)
 
 
 PRESETS = {"paper": {}, "cpu": {}}

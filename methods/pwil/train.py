@@ -9,12 +9,11 @@ from __future__ import annotations
 import numpy as np
 from stable_baselines3 import TD3
 from stable_baselines3.common.buffers import NStepReplayBuffer
-from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
-from methods.common.sb3 import (BraxVecEnv, BudgetCallback, seed_everything, set_torch_threads,
-                                torch_policy)
+from methods.common.sb3 import (BraxVecEnv, learn_within_budget, seed_everything,
+                                set_torch_threads, td3_kwargs, torch_policy)
 from methods.pwil.config import PWILConfig
 from methods.pwil.rewarder import PWILRewarder
 
@@ -73,32 +72,29 @@ def prefill(model: TD3, demo_obs, demo_act, reward: float, count: int) -> int:
 
 
 def build_model(env, config: PWILConfig, seed: int) -> TD3:
-    """The PWIL learner: plain SB3 TD3 (the reward arrives through the env wrapper)."""
-    act_dim = env.action_space.shape[0]
-    return TD3(
-        policy="MlpPolicy", env=env, learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size, learning_starts=config.learning_starts,
-        batch_size=config.batch_size, tau=config.tau, gamma=config.gamma,
-        train_freq=(config.steps_per_collect // config.num_envs, "step"),
-        gradient_steps=max(1, round(config.updates_per_step * config.steps_per_collect)),
-        action_noise=NormalActionNoise(np.zeros(act_dim),
-                                       config.exploration_noise * np.ones(act_dim)),
-        replay_buffer_class=NStepReplayBuffer,
-        replay_buffer_kwargs=dict(n_steps=config.n_step, gamma=config.gamma),
-        policy_kwargs=dict(net_arch=dict(pi=list(config.actor_hidden),
-                                         qf=list(config.critic_hidden))),
-        seed=seed, device="cpu", verbose=0)
+    """The PWIL learner: plain SB3 TD3 with n-step replay (the reward arrives through the env
+    wrapper)."""
+    return TD3(**td3_kwargs(env, config, config.learning_rate, seed),
+               replay_buffer_class=NStepReplayBuffer,
+               replay_buffer_kwargs=dict(n_steps=config.n_step, gamma=config.gamma))
+
+
+def make_learner(env, episode_length: int, demo, config: PWILConfig, seed: int):
+    """(model, atoms, prefilled): TD3 on `num_envs` copies of the (gated) brax env rewarded
+    by PWIL, replay prefilled with demo transitions."""
+    atoms, demo_obs, demo_act = expert_atoms(demo, config)
+    rewarder = PWILRewarder(atoms, config.num_envs, config.horizon, config.alpha, config.beta)
+    venv = PWILReward(BraxVecEnv(env, config.num_envs, episode_length, seed), rewarder,
+                      config.use_actions)
+    model = build_model(venv, config, seed)
+    filled = prefill(model, demo_obs, demo_act, config.alpha, config.prefill)
+    return model, atoms, filled
 
 
 def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
     set_torch_threads(config.torch_threads)
     seed_everything(seed)
-    atoms, demo_obs, demo_act = expert_atoms(demo, config)
-    rewarder = PWILRewarder(atoms, config.num_envs, config.horizon, config.alpha, config.beta)
-    env = PWILReward(BraxVecEnv(task.env, config.num_envs, task.episode_length, seed),
-                     rewarder, config.use_actions)
-    model = build_model(env, config, seed)
-    filled = prefill(model, demo_obs, demo_act, config.alpha, config.prefill)
+    model, atoms, filled = make_learner(task.env, task.episode_length, demo, config, seed)
 
     def policy():
         return torch_policy(model.actor, noise_std=config.exploration_noise)
@@ -106,9 +102,7 @@ def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
     def metrics():
         return {"train/replay_size": model.replay_buffer.size() * model.n_envs}
 
-    cb = BudgetCallback(ctx, policy, config.report_every, metrics_fn=metrics)
-    total = ctx.budget.env_steps if ctx.budget.env_steps is not None else 10 ** 12
-    model.learn(total_timesteps=total, callback=cb)
+    cb = learn_within_budget(model, ctx, policy, config.report_every, metrics)
     return TrainResult(policy(), env_steps=int(model.num_timesteps),
                        metrics={**cb.throughput(), **metrics(), "train/prefilled": filled,
                                 "train/expert_atoms": len(atoms)})

@@ -20,6 +20,7 @@ from flax import linen
 
 from bench.api import Policy, TrainResult
 from methods.shac.config import SHACConfig
+from tasks.core import reset_done
 
 
 class MLP(linen.Module):
@@ -100,12 +101,16 @@ class SHAC:
         self.obs_size, self.action_size = obs_size, action_size
         self.actor_net = MLP(config.actor_hidden, action_size)
         self.critic_net = MLP(config.critic_hidden, 1, ortho=True)
-        sched = lambda lr: optax.linear_schedule(lr, config.lr_end, config.max_epochs)  # noqa
         b1, b2 = config.betas
-        self.actor_tx = optax.chain(optax.clip_by_global_norm(config.grad_clip),
-                                    optax.adam(sched(config.actor_lr), b1=b1, b2=b2))
+        # One actor update per epoch: its optax step count is the epoch.
+        self.actor_tx = optax.chain(
+            optax.clip_by_global_norm(config.grad_clip),
+            optax.adam(optax.linear_schedule(config.actor_lr, config.lr_end, config.max_epochs),
+                       b1=b1, b2=b2))
         # The critic takes critic_iterations * minibatches steps per epoch; its LR decays by
         # epoch as the original's (it sets the LR once per epoch).
+        self.critic_lr = optax.linear_schedule(config.critic_lr, config.lr_end,
+                                               config.max_epochs)
         self.critic_tx = optax.chain(
             optax.clip_by_global_norm(config.grad_clip),
             optax.inject_hyperparams(optax.adam)(learning_rate=config.critic_lr, b1=b1, b2=b2))
@@ -154,10 +159,7 @@ class SHAC:
             loss = loss + jnp.sum(jnp.where(seg_end, -acc - cfg.gamma * gam * v, 0.0))
             gam = jnp.where(done, 1.0, gam * cfg.gamma)
             acc = jnp.where(done, 0.0, acc)
-            fresh = jax.lax.stop_gradient(jax.vmap(self.env.reset)(jax.random.split(k_reset, N)))
-            es2 = jax.tree.map(
-                lambda f, x: jnp.where(done.reshape(done.shape + (1,) * (x.ndim - 1)), f, x),
-                fresh, nxt)
+            es2 = reset_done(self.env, nxt, done, k_reset)
             out = (self.norm(rms, es.obs), jax.lax.stop_gradient(r),
                    jax.lax.stop_gradient(v), seg_end.astype(jnp.float32), es.obs, done)
             return (es2, jnp.where(done, 0, t1), gam, acc, loss), out
@@ -186,8 +188,7 @@ class SHAC:
         x = obs_n.reshape(-1, self.obs_size)
         y = targets.reshape(-1)
         mb = x.shape[0] // cfg.critic_minibatches
-        lr = jnp.maximum(cfg.lr_end, cfg.critic_lr + (cfg.lr_end - cfg.critic_lr)
-                         * s.epoch / cfg.max_epochs)
+        lr = self.critic_lr(s.epoch)
         clip_state, adam_state = s.critic_opt
         critic_opt = (clip_state, adam_state._replace(
             hyperparams={**adam_state.hyperparams, "learning_rate": lr}))
