@@ -94,7 +94,8 @@ def _requests(args, methods, tasks, seeds):
         return args.preset
     return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=preset(m),
                        overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos)
-            for m, t, s in itertools.product(methods, tasks, seeds)]
+            # seed-major: an interrupted sweep leaves whole seeds of the grid, not whole methods
+            for s, t, m in itertools.product(seeds, tasks, methods)]
 
 
 def _run_all(args, requests):

@@ -64,6 +64,17 @@ def machine() -> dict:
             "jax_devices": [str(d) for d in jax.devices()]}
 
 
+def resources() -> dict:
+    """What this run may use: CPUs in its affinity set (taskset / cgroup pinning) and
+    accelerators JAX sees. Recorded in every record: runs compare only at equal resources."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    gpus = sum(d.platform != "cpu" for d in jax.devices())
+    return {"cpus": cpus, "gpus": gpus}
+
+
 def _canonical(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, default=str)
 
@@ -218,8 +229,9 @@ def execute(p: Prepared, store: Store, force: bool = False,
             from bench.transfer import evaluate_transfer
             todo = perturb.grid_set() if req.eval.robustness else perturb.default_set()
             log(f"  transfer: {len(todo)} perturbed evaluations")
-            transfer = evaluate_transfer(task, p.demo, result.policy, req.seed, req.eval,
-                                         todo, spec.uses.sim_at_test)
+            with ctx.clock.paused():  # harness work: its compiling is counted as 'eval'
+                transfer = evaluate_transfer(task, p.demo, result.policy, req.seed, req.eval,
+                                             todo, spec.uses.sim_at_test)
     except Diverged as e:
         status, message = "diverged", str(e)
     except Exception as e:  # recorded, never raised past the record
@@ -250,6 +262,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
                        "random_return": p.demo.random_return},
         "demo": {"path": os.path.relpath(p.demo.path, _REPO), "sha256": p.demo.sha256},
         "versions": library_versions(), "git_revision": git_revision(), "machine": machine(),
+        "resources": resources(),
         "started": started.isoformat(), "finished": datetime.datetime.now(
             datetime.timezone.utc).isoformat(),
     }

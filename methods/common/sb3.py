@@ -249,9 +249,17 @@ def learn_within_budget(model, ctx, make_policy: Callable[[], Policy], report_ev
     return cb
 
 
+def usable_cpus() -> int:
+    from bench.runner import resources
+    return resources()["cpus"]
+
+
 def set_torch_threads(n: int) -> None:
-    """Deliberate torch intra-op threads (the learner's updates set the pace on a CPU)."""
-    torch.set_num_threads(int(n))
+    """Deliberate torch intra-op threads (the learner's updates set the pace on a CPU);
+    0 means one per CPU this process may use (its affinity, e.g. under taskset)."""
+    if n < 0:
+        raise ValueError(f"torch_threads must be >= 0 (0: one per usable CPU), got {n}")
+    torch.set_num_threads(int(n) or usable_cpus())
 
 
 def seed_everything(seed: int) -> None:

@@ -52,12 +52,16 @@ class DACConfig:
     (one 128-step episode's worth) is followed by the same number of updates, as the
     original's per-episode schedule."""
     steps_per_collect: int = 128
-    torch_threads: int = 2
-    """torch intra-op threads: the learner sets the pace on a CPU (see the benchmark)."""
+    torch_threads: int = 0
+    """torch intra-op threads (0: the CPUs this process may use); the learner sets the pace
+    on a CPU (see the benchmark)."""
     report_every: int = 2048
     """Env steps between reports to the harness (evaluation happens there when due)."""
 
     def __post_init__(self):
+        if self.torch_threads < 0:
+            raise ValueError(f"torch_threads must be >= 0 (0: one per usable CPU), got "
+                             f"{self.torch_threads}")
         for name in ("disc_lr", "actor_lr", "critic_lr", "tau", "gamma", "updates_per_step",
                      "actor_grad_clip"):
             if not getattr(self, name) > 0:
@@ -65,7 +69,7 @@ class DACConfig:
         if not self.gamma < 1:
             raise ValueError(f"gamma must be < 1, got {self.gamma}")
         for name in ("disc_batch", "batch_size", "num_envs", "steps_per_collect", "policy_delay",
-                     "trajectory_size", "torch_threads", "report_every", "buffer_size",
+                     "trajectory_size", "report_every", "buffer_size",
                      "actor_lr_halving_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

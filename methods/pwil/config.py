@@ -51,17 +51,20 @@ class PWILConfig:
     # ---- vectorized collection on a CPU ----
     num_envs: int = 16
     steps_per_collect: int = 128
-    torch_threads: int = 2
+    torch_threads: int = 0
     report_every: int = 2048
 
     def __post_init__(self):
+        if self.torch_threads < 0:
+            raise ValueError(f"torch_threads must be >= 0 (0: one per usable CPU), got "
+                             f"{self.torch_threads}")
         for name in ("alpha", "beta", "learning_rate", "tau", "updates_per_step", "gamma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not self.gamma < 1:
             raise ValueError(f"gamma must be < 1, got {self.gamma}")
         for name in ("horizon", "subsampling", "n_step", "batch_size", "buffer_size",
-                     "num_envs", "steps_per_collect", "torch_threads", "report_every"):
+                     "num_envs", "steps_per_collect", "report_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.prefill < 0:
