@@ -3,7 +3,7 @@
     ildbench tasks                      registered tasks, backends, demos and references
     ildbench methods                    registered methods and what each uses
     ildbench run --method M --task T --seed S --budget 300s [--budget-steps N]
-    ildbench sweep --methods M.. --tasks T.. --seeds N --budget 60s     (local grid)
+    ildbench sweep --methods M.. --tasks T.. --seeds N --budget 10m [--executor ray] [--dry-run]
     ildbench quick                      the main job: a quick leaderboard on the defaults
     ildbench leaderboard                print + write results/leaderboard.{md,csv}
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
@@ -99,26 +99,32 @@ def _requests(args, methods, tasks, seeds):
 
 
 def _run_all(args, requests):
-    from bench.runner import enable_compilation_cache, execute, prepare
+    from bench.runner import enable_compilation_cache, prepare
     from bench.store import Store
     prepared = [prepare(r) for r in requests]  # every input error surfaces before any work
     if getattr(args, "dry_run", False):
+        n_done = 0
         for p in prepared:
             done = Store(args.store).finished(p.run_id)
+            n_done += done is not None
             print(f"{p.run_id}  {p.request.method:10s} {p.request.task:18s} seed "
                   f"{p.request.seed}  {'done' if done else 'to run'}")
+        b = prepared[0].request.budget if prepared else None
+        print(f"plan: {len(prepared)} cells, {n_done} finished, {len(prepared) - n_done} to "
+              f"run" + (f", {b.describe()} of training each" if b else ""))
         return 0
-    enable_compilation_cache(args.jax_cache)
     store = Store(args.store)
-    statuses = []
-    for i, p in enumerate(prepared, 1):
-        print(f"[{i}/{len(prepared)}]", flush=True)
-        rec, skipped = execute(p, store, force=args.force,
-                               log=lambda s: print(s, flush=True))
-        if skipped:
-            print(f"run {p.run_id}: already finished ({rec['status']}), skipped")
-        statuses.append(rec["status"])
-    return 1 if "failed" in statuses else 0
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    if getattr(args, "executor", "local") == "ray":
+        from bench.sweep import run_ray
+        outcomes = run_ray(prepared, store, address=args.ray_address,
+                           cpus_per_run=args.cpus_per_run, gpus_per_run=args.gpus_per_run,
+                           force=args.force, jax_cache=args.jax_cache, log=log)
+    else:
+        from bench.sweep import run_local
+        enable_compilation_cache(args.jax_cache)
+        outcomes = run_local(prepared, store, force=args.force, log=log)
+    return 1 if any(o.status == "failed" for o in outcomes) else 0
 
 
 def cmd_run(args):
@@ -152,11 +158,15 @@ def cmd_quick(args):
 
 def cmd_leaderboard(args):
     from bench import leaderboard as lb
+    from bench.report import write_report
     from bench.store import Store
-    board = lb.leaderboard(Store(args.store))
-    print(lb.to_markdown(board))
-    md, csv = lb.write(board, args.out)
-    print(f"written: {md}, {csv}")
+    store = Store(args.store)
+    print(lb.to_markdown(lb.leaderboard(store)))
+    paths = write_report(store, args.out)
+    agg = os.path.join(args.out, "aggregates.md")
+    if os.path.exists(agg):
+        print(open(agg).read())
+    print("written: " + ", ".join(paths))
     return 0
 
 
@@ -226,6 +236,13 @@ def build_parser():
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed-start", type=int, default=0)
     p.add_argument("--out", default="results")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local: one cell at a time in this process; ray: cells as Ray tasks")
+    p.add_argument("--ray-address", default=None,
+                   help="existing Ray cluster ('auto', 'ray://host:10001'); default: local Ray")
+    p.add_argument("--cpus-per-run", type=float, default=1,
+                   help="CPUs each Ray cell reserves (equal for every cell)")
+    p.add_argument("--gpus-per-run", type=float, default=0)
     _add_run_options(p)
     p.set_defaults(fn=cmd_sweep)
     p = sub.add_parser("quick", help="the main job: quick leaderboard on embedded defaults")

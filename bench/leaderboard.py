@@ -1,9 +1,12 @@
-"""Leaderboard: mean +/- std of the FINAL normalized score per task x method, over seeds.
+"""Leaderboard: the FINAL normalized score per task x method over seeds (mean, std and a 95%
+percentile-bootstrap CI of the mean), transfer score, anytime metrics (area under the
+normalized-score-vs-time curve, time to 50%/90% of expert) and the paper's return beside ours.
 
-Runs pool over seeds only when method version, preset and config are equal (the 'variant'
-column, a short hash of them); the budget is shown so unequal budgets are visible. A
-'diverged' run counts with its last valid evaluation (or 0.0, random level, if it never had
-one); 'failed' runs are listed in the `failed` column and not averaged.
+Runs pool over seeds only when method version, preset, config and evaluation settings are
+equal (the 'variant' column, a short hash of them); the budget is shown so unequal budgets
+are visible. A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if
+it never had one); 'failed' runs are listed in the `failed` column and not averaged.
+Reference methods (which use the true reward or the simulator at test time) are marked.
 """
 from __future__ import annotations
 
@@ -13,12 +16,17 @@ import os
 
 import pandas as pd
 
+from bench import curves
 from bench.api import Uses
 from bench.budget import Budget
+from bench.paper import paper_return
+from bench.stats import bootstrap_ci
 from bench.store import Store
 
-COLUMNS = ["task", "method", "variant", "uses", "budget", "seeds", "normalized_mean", "normalized_std",
-           "transfer_mean", "transfer_std", "return_mean", "diverged", "failed"]
+COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
+           "normalized_mean", "normalized_std", "ci_lo", "ci_hi", "transfer_mean",
+           "transfer_std", "auc_mean", "t50_mean", "t50_reached", "t90_mean", "t90_reached",
+           "return_mean", "paper_return", "paper_expert", "diverged", "failed"]
 
 
 def _transfer(record: dict) -> float | None:
@@ -33,7 +41,7 @@ def _transfer(record: dict) -> float | None:
 def variant(record: dict) -> str:
     """Short id of (method version, preset, config): runs pool over seeds only when equal."""
     key = json.dumps([record.get("method_version"), record.get("preset"),
-                      record.get("config")], sort_keys=True, default=str)
+                      record.get("config"), record.get("eval")], sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:6]
 
 
@@ -43,16 +51,24 @@ def records_frame(store: Store) -> pd.DataFrame:
         norm = r.get("final_normalized")
         if r["status"] == "diverged" and norm is None:
             norm = 0.0
-        rows.append({"task": r["task"], "method": r["method"], "variant": variant(r),
+        horizon = (r.get("budget") or {}).get("seconds")
+        curve = r.get("curve") or []
+        rows.append({"auc": curves.auc(curve, horizon) if horizon else None,
+                     "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
+                     "reference": bool(r.get("reference_method")),"task": r["task"], "method": r["method"], "variant": variant(r),
                      "seed": r["seed"],
                      "status": r["status"], "normalized": norm, "return": r.get("final_return"),
                      "transfer": _transfer(r),
-                     "uses": Uses(**r["uses"]).describe() + (" (reference)" if r.get(
-                         "reference_method") else ""),
+                     "uses": Uses(**r["uses"]).describe(),
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
-                                       "normalized",
-                                       "return", "transfer", "uses", "budget", "train_s"])
+                                       "normalized", "return", "transfer", "uses",
+                                       "reference", "budget", "train_s", "auc", "t50", "t90"])
+
+
+def _mean(col: pd.Series) -> float:
+    v = col.dropna().astype(float)
+    return float(v.mean()) if len(v) else float("nan")
 
 
 def leaderboard(store: Store) -> pd.DataFrame:
@@ -63,11 +79,19 @@ def leaderboard(store: Store) -> pd.DataFrame:
     for (task, method, var, uses, budget), g in df.groupby(["task", "method", "variant", "uses",
                                                             "budget"]):
         scored = g[g.status.isin(["ok", "diverged"])]
+        norms = scored.normalized.astype(float).to_numpy()
+        lo, hi = bootstrap_ci(norms) if len(norms) else (float("nan"), float("nan"))
         out.append({"task": task, "method": method, "variant": var, "uses": uses,
-                    "budget": budget,
+                    "reference": bool(g.reference.any()), "budget": budget,
                     "seeds": len(scored),
-                    "normalized_mean": scored.normalized.astype(float).mean(),
+                    "normalized_mean": norms.mean() if len(norms) else float("nan"),
                     "normalized_std": scored.normalized.astype(float).std(ddof=1),
+                    "ci_lo": lo, "ci_hi": hi,
+                    "auc_mean": _mean(scored.auc),
+                    "t50_mean": _mean(scored.t50), "t50_reached": int(scored.t50.notna().sum()),
+                    "t90_mean": _mean(scored.t90), "t90_reached": int(scored.t90.notna().sum()),
+                    "paper_return": paper_return(task, method),
+                    "paper_expert": paper_return(task, "expert"),
                     "transfer_mean": scored.transfer.astype(float).mean(),
                     "transfer_std": scored.transfer.astype(float).std(ddof=1),
                     "return_mean": scored["return"].astype(float).mean(),
@@ -86,9 +110,20 @@ def to_markdown(board: pd.DataFrame) -> str:
     show["transfer"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else
                         ("-" if pd.isna(m) else f"{m:.3f}")
                         for m, s in zip(show.transfer_mean, show.transfer_std)]
+    show["95% CI"] = [f"[{lo:.3f}, {hi:.3f}]" if pd.notna(lo) else "-"
+                      for lo, hi in zip(show.ci_lo, show.ci_hi)]
     show["return"] = show.return_mean.map(lambda v: f"{v:.2f}")
-    cols = ["task", "method", "variant", "normalized", "transfer", "return", "seeds", "budget",
-            "uses", "diverged", "failed"]
+    show["paper"] = [f"{p:.2f} (expert {e:.2f})" if pd.notna(p) else "-"
+                     for p, e in zip(show.paper_return, show.paper_expert)]
+    show["AUC"] = show.auc_mean.map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
+
+    def _tt(m, n, seeds):
+        return "-" if n == 0 else f"{m:.0f}s ({n}/{seeds})"
+    show["t50%"] = [_tt(m, n, k) for m, n, k in zip(show.t50_mean, show.t50_reached, show.seeds)]
+    show["t90%"] = [_tt(m, n, k) for m, n, k in zip(show.t90_mean, show.t90_reached, show.seeds)]
+    show["method"] = [m + (" (ref)" if r else "") for m, r in zip(show.method, show.reference)]
+    cols = ["task", "method", "variant", "normalized", "95% CI", "transfer", "AUC", "t50%",
+            "t90%", "return", "paper", "seeds", "budget", "uses", "diverged", "failed"]
     return show[cols].to_markdown(index=False) + "\n"
 
 

@@ -66,11 +66,14 @@ def machine() -> dict:
 
 def resources() -> dict:
     """What this run may use: CPUs in its affinity set (taskset / cgroup pinning) and
-    accelerators JAX sees. Recorded in every record: runs compare only at equal resources."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
+    accelerators JAX sees (under Ray: the CPUs the cell reserved). Recorded in every record: runs compare only at equal resources."""
+    if os.environ.get("ILDBENCH_CPUS_PER_RUN"):  # set by an executor that reserves CPUs (Ray)
+        cpus = int(float(os.environ["ILDBENCH_CPUS_PER_RUN"]))
+    else:
+        try:
+            cpus = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cpus = os.cpu_count() or 1
     gpus = sum(d.platform != "cpu" for d in jax.devices())
     return {"cpus": cpus, "gpus": gpus}
 

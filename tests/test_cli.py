@@ -48,13 +48,14 @@ def test_run_then_leaderboard(capsys, tmp_path):
     code, out, _ = _run(capsys, "run", *args)
     assert code == 0 and "ok, final return" in out
     code, out, _ = _run(capsys, "run", *args)
-    assert "already finished (ok), skipped" in out
+    assert "skipped (finished before), ok" in out
     code, out, _ = _run(capsys, "leaderboard", "--store", store, "--out", out_dir)
     assert code == 0 and "| pointmass | bc" in out.replace("  ", " ").replace("  ", " ")
     assert os.path.exists(os.path.join(out_dir, "leaderboard.csv"))
     code, out, _ = _run(capsys, "sweep", "--methods", "bc", "--tasks", "pointmass", "--seeds",
                         "2", "--dry-run", "--budget", "60s", "--set", "updates=200",
                         "--eval-episodes", "8", "--store", store)
+    assert "plan: 2 cells, 1 finished, 1 to run" in out
     lines = [l for l in out.splitlines() if "pointmass" in l]
     assert len(lines) == 2 and lines[0].endswith("done") and lines[1].endswith("to run")
 

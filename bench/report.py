@@ -1,0 +1,179 @@
+"""The leaderboard report: table, aggregates across tasks, anytime curves (files under out/).
+
+    leaderboard.md / .csv   per task x method (bench.leaderboard)
+    aggregates.md / .csv    IQM and mean over tasks with stratified-bootstrap 95% CIs, and
+                            the probability that ILD improves on each other method, for the
+                            final nominal score and for the transfer score
+    curves_<task>.png       normalized score vs training seconds (mean, 95% CI band)
+    curves_aggregate.png    mean over tasks vs fraction of the budget
+
+Aggregates use one variant per (method, task): the one with the most scored seeds (a store
+may hold older or differently-configured runs). They refuse unequal seed counts: the report
+then says which cell is short instead of averaging unequal strata.
+"""
+from __future__ import annotations
+
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from bench import curves, leaderboard as lb, stats  # noqa: E402
+from bench.store import Store  # noqa: E402
+
+GRID_POINTS = 60
+
+
+def _scored_records(store: Store) -> list[dict]:
+    return [r for r in store.records() if r.get("status") in ("ok", "diverged")]
+
+
+def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
+    """Rows of the variant with the most scored runs per (task, method)."""
+    scored = frame[frame.status.isin(["ok", "diverged"])]
+    if scored.empty:
+        return scored
+    sizes = scored.groupby(["task", "method", "variant"]).size().reset_index(name="n")
+    best = sizes.sort_values("n", ascending=False).drop_duplicates(["task", "method"])
+    keep = set(zip(best.task, best.method, best.variant))
+    return scored[[k in keep for k in zip(scored.task, scored.method, scored.variant)]]
+
+
+def aggregates(frame: pd.DataFrame, of: str = "ild", reps: int = 2000
+               ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
+    """(aggregate table, improvement table, notes) for 'normalized' and 'transfer'."""
+    chosen = main_variants(frame)
+    imitation = chosen[~chosen.reference.astype(bool)]
+    tables, improvements, notes = [], [], []
+    for value in ("normalized", "transfer"):
+        part = imitation.dropna(subset=[value])
+        if part.empty:
+            continue
+        try:
+            mats = stats.score_matrices(part.assign(**{value: part[value].astype(float)}),
+                                        value)
+        except stats.ShapeError as e:
+            notes.append(f"{value}: not aggregated: {e}")
+            continue
+        tasks = list(next(iter(mats.values())).columns)
+        agg = stats.aggregate_table(mats, reps=reps)
+        agg.insert(0, "score", value)
+        agg["task_set"] = ", ".join(tasks)
+        tables.append(agg)
+        if of in mats and len(mats) > 1:
+            imp = stats.improvement_table(mats, of, reps=reps)
+            imp.insert(0, "score", value)
+            improvements.append(imp)
+    agg = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    imp = pd.concat(improvements, ignore_index=True) if improvements else pd.DataFrame()
+    return agg, imp, notes
+
+
+def aggregates_markdown(agg: pd.DataFrame, imp: pd.DataFrame, notes: list[str]) -> str:
+    out = ["# Aggregates over tasks (imitation methods; references excluded)", ""]
+    if not agg.empty:
+        show = agg.copy()
+        for k in ("iqm", "mean"):
+            show[k] = [f"{v:.3f} [{lo:.3f}, {hi:.3f}]" for v, lo, hi in
+                       zip(show[k], show[f"{k}_lo"], show[f"{k}_hi"])]
+        out += ["IQM and mean of the final normalized score with stratified-bootstrap 95% "
+                "CIs (runs resampled within each task). `transfer` is the mean normalized "
+                "score over the perturbation families at their default magnitudes.", "",
+                show[["score", "method", "iqm", "mean", "runs", "tasks", "task_set"]]
+                .to_markdown(index=False), ""]
+    if not imp.empty:
+        show = imp.copy()
+        show["P(X > Y)"] = [f"{p:.3f} [{lo:.3f}, {hi:.3f}]"
+                            for p, lo, hi in zip(show.p, show.lo, show.hi)]
+        out += ["Probability of improvement (per task P over run pairs, ties 1/2; mean over "
+                "tasks; stratified-bootstrap 95% CI):", "",
+                show[["score", "comparison", "P(X > Y)"]].to_markdown(index=False), ""]
+    out += [f"- {n}" for n in notes]
+    if agg.empty and not notes:
+        out.append("_no scored runs_")
+    return "\n".join(out) + "\n"
+
+
+def _curve_band(records: list[dict], grid: np.ndarray) -> tuple[np.ndarray, ...]:
+    vals = np.stack([curves.value_at(r.get("curve"), grid) for r in records])  # (runs, grid)
+    mean = vals.mean(0)
+    if len(records) == 1:
+        return mean, mean, mean
+    ci = np.array([stats.bootstrap_ci(vals[:, j], reps=500) for j in range(grid.size)])
+    return mean, ci[:, 0], ci[:, 1]
+
+
+def curve_plots(store: Store, frame: pd.DataFrame, out_dir: str) -> list[str]:
+    chosen = main_variants(frame)
+    keep = set(zip(chosen.task, chosen.method, chosen.variant, chosen.seed))
+    by_cell: dict[tuple[str, str], list[dict]] = {}
+    for r in _scored_records(store):
+        if (r["task"], r["method"], lb.variant(r), r["seed"]) in keep and \
+                (r.get("budget") or {}).get("seconds"):
+            by_cell.setdefault((r["task"], r["method"]), []).append(r)
+    paths = []
+    os.makedirs(out_dir, exist_ok=True)
+    frac = np.linspace(0, 1, GRID_POINTS)
+    agg: dict[str, list[np.ndarray]] = {}
+    for task in sorted({t for t, _ in by_cell}):
+        fig, ax = plt.subplots(figsize=(5, 3.4))
+        for (t, method), recs in sorted(by_cell.items()):
+            if t != task:
+                continue
+            horizon = max(r["budget"]["seconds"] for r in recs)
+            grid = frac * horizon
+            mean, lo, hi = _curve_band(recs, grid)
+            ref = " (ref)" if recs[0].get("reference_method") else ""
+            ax.plot(grid, mean, label=f"{method}{ref} (n={len(recs)})",
+                    ls="--" if ref else "-")
+            ax.fill_between(grid, lo, hi, alpha=0.2)
+            if not ref:
+                agg.setdefault(method, []).append(mean)
+        ax.axhline(1.0, color="grey", lw=0.5, ls=":")
+        ax.set_xlabel("training wall-clock (s)")
+        ax.set_ylabel("normalized score")
+        ax.set_title(f"{task}: anytime score (1 = expert, 0 = random)")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = os.path.join(out_dir, f"curves_{task}.png")
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    if agg:
+        fig, ax = plt.subplots(figsize=(5, 3.4))
+        for method, per_task in sorted(agg.items()):
+            ax.plot(frac, np.mean(per_task, 0), label=f"{method} ({len(per_task)} tasks)")
+        ax.axhline(1.0, color="grey", lw=0.5, ls=":")
+        ax.set_xlabel("fraction of the training budget")
+        ax.set_ylabel("mean normalized score over tasks")
+        ax.set_title("aggregate anytime score (imitation methods)")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = os.path.join(out_dir, "curves_aggregate.png")
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
+    board = lb.leaderboard(store)
+    md, csv = lb.write(board, out_dir)
+    frame = lb.records_frame(store)
+    paths = [md, csv]
+    if not frame.empty:
+        agg, imp, notes = aggregates(frame, reps=reps)
+        p = os.path.join(out_dir, "aggregates.md")
+        with open(p, "w") as f:
+            f.write(aggregates_markdown(agg, imp, notes))
+        paths.append(p)
+        if not agg.empty:
+            p = os.path.join(out_dir, "aggregates.csv")
+            pd.concat([agg, imp], ignore_index=True).to_csv(p, index=False)
+            paths.append(p)
+        paths += curve_plots(store, frame, out_dir)
+    return paths

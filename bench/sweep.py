@@ -1,0 +1,170 @@
+"""Running a grid of prepared cells: the local executor (in-process, one cell at a time) and
+the Ray executor (cells as Ray tasks, each with the same CPU/GPU request).
+
+Both are idempotent: a cell whose content-hashed record is finished in the store is skipped,
+so an interrupted sweep resumes where it stopped. Records are written by whichever process
+ran the cell, atomically (bench.store), one file per run id: concurrent workers never share
+a file, and a reader never sees half a record.
+
+Progress (rich): cells done / skipped / left, the last cell's score, and an ETA from the mean
+wall time of the cells run in this sitting.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from typing import Callable, Sequence
+
+from bench.runner import Prepared, RunRequest, execute, prepare
+from bench.store import Store
+
+
+@dataclasses.dataclass
+class Outcome:
+    run_id: str
+    method: str
+    task: str
+    seed: int
+    status: str
+    normalized: float | None
+    skipped: bool
+    wall_s: float
+
+
+class Progress:
+    """Counts, last score and ETA; a rich live bar on a terminal, plain lines otherwise."""
+
+    def __init__(self, total: int, to_run: int, log: Callable[[str], None] = print):
+        self.total, self.to_run, self.log = total, to_run, log
+        self.done = self.skipped = 0
+        self.walls: list[float] = []
+        self.t0 = time.perf_counter()
+        self._bar = None
+        if sys.stdout.isatty():
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RP,
+                                       TextColumn, TimeElapsedColumn)
+            self._bar = RP(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                           TimeElapsedColumn(), TextColumn("ETA {task.fields[eta]}"))
+            self._bar.start()
+            self._task = self._bar.add_task("sweep", total=total, eta="?")
+
+    def eta_s(self) -> float | None:
+        left = self.to_run - len(self.walls)
+        if not self.walls:
+            return None
+        return left * sum(self.walls) / len(self.walls)
+
+    def update(self, o: Outcome) -> str:
+        self.done += 1
+        if o.skipped:
+            self.skipped += 1
+        else:
+            self.walls.append(o.wall_s)
+        eta = self.eta_s()
+        eta_txt = "?" if eta is None else time.strftime("%H:%M:%S", time.gmtime(eta))
+        score = "-" if o.normalized is None else f"{o.normalized:.3f}"
+        line = (f"[{self.done}/{self.total}] {o.method} on {o.task} seed {o.seed}: "
+                f"{'skipped (finished before), ' if o.skipped else ''}{o.status}, normalized "
+                f"{score} | run {len(self.walls)}, skipped {self.skipped}, left "
+                f"{self.total - self.done}, ETA {eta_txt}")
+        if self._bar is not None:
+            self._bar.update(self._task, advance=1, eta=eta_txt,
+                             description=f"{o.method}/{o.task}/{o.seed}: {score}")
+            self._bar.console.print(line)
+        else:
+            self.log(line)
+        return line
+
+    def close(self):
+        if self._bar is not None:
+            self._bar.stop()
+
+
+def _outcome(p: Prepared, rec: dict, skipped: bool, wall: float) -> Outcome:
+    r = p.request
+    return Outcome(p.run_id, r.method, r.task, r.seed, rec["status"],
+                   rec.get("final_normalized"), skipped, wall)
+
+
+def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
+              log: Callable[[str], None] = print) -> list[Outcome]:
+    to_run = sum(force or store.finished(p.run_id) is None for p in prepared)
+    progress = Progress(len(prepared), to_run, log)
+    out = []
+    try:
+        for p in prepared:
+            t0 = time.perf_counter()
+            rec, skipped = execute(p, store, force=force, log=log)
+            o = _outcome(p, rec, skipped, time.perf_counter() - t0)
+            progress.update(o)
+            out.append(o)
+    finally:
+        progress.close()
+    return out
+
+
+def _ray_cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
+              cpus: float) -> dict:
+    """One cell inside a Ray worker: re-validated there (the worker imports the method's
+    code itself), run, record written by the worker."""
+    import os
+
+    from bench.runner import enable_compilation_cache
+    os.environ["ILDBENCH_CPUS_PER_RUN"] = str(cpus)
+    enable_compilation_cache(jax_cache)
+    t0 = time.perf_counter()
+    p = prepare(request)
+    rec, skipped = execute(p, Store(store_root), force=force, log=lambda s: None)
+    return {"run_id": p.run_id, "status": rec["status"],
+            "normalized": rec.get("final_normalized"), "skipped": skipped,
+            "wall_s": time.perf_counter() - t0}
+
+
+def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = None,
+            cpus_per_run: float = 1, gpus_per_run: float = 0, force: bool = False,
+            jax_cache: str | None = None, log: Callable[[str], None] = print,
+            init_kwargs: dict | None = None) -> list[Outcome]:
+    """Cells as Ray tasks. `address`: an existing cluster ('auto' or 'ray://host:port');
+    None starts a local Ray. Every cell requests the same CPUs/GPUs, so runs in one
+    comparison get equal resources; the store must be a path every worker can reach."""
+    import os
+
+    import ray
+    if not ray.is_initialized():
+        ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                 **(init_kwargs or {}))
+    root = os.path.abspath(store.root)
+    cell = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run, max_retries=0)(_ray_cell)
+    pending = {}
+    skipped = []
+    for p in prepared:
+        done = None if force else store.finished(p.run_id)
+        if done is not None:
+            skipped.append(_outcome(p, done, True, 0.0))
+        else:
+            ref = cell.remote(p.request, root, force, jax_cache, cpus_per_run)
+            pending[ref] = p
+    progress = Progress(len(prepared), len(pending), log)
+    out = []
+    try:
+        for o in skipped:
+            progress.update(o)
+            out.append(o)
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            p = pending.pop(ready[0])
+            try:
+                res = ray.get(ready[0])
+                o = Outcome(p.run_id, p.request.method, p.request.task, p.request.seed,
+                            res["status"], res["normalized"], res["skipped"], res["wall_s"])
+            except Exception as e:  # the worker died: nothing recorded for this cell
+                log(f"cell {p.run_id} ({p.request.method} on {p.request.task}) crashed in "
+                    f"its Ray worker: {e}")
+                o = Outcome(p.run_id, p.request.method, p.request.task, p.request.seed,
+                            "failed", None, False, 0.0)
+            progress.update(o)
+            out.append(o)
+    finally:
+        progress.close()
+    return out

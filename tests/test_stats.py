@@ -1,0 +1,103 @@
+"""Aggregate statistics and anytime metrics against hand-computed values."""
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats as sps
+
+from bench import curves, stats
+
+
+def test_iqm_hand_values_and_scipy():
+    assert stats.iqm([[1, 2], [3, 4], [5, 6], [7, 8]]) == pytest.approx(4.5)  # mean(3,4,5,6)
+    assert stats.iqm([0, 0, 0, 10]) == 0.0                                   # 10 is trimmed
+    rng = np.random.default_rng(0)
+    for n in (3, 5, 10, 17):
+        a = rng.normal(size=(n, 4))
+        assert stats.iqm(a) == pytest.approx(sps.trim_mean(a, 0.25, axis=None), rel=1e-12)
+
+
+def test_probability_of_improvement_hand_values():
+    assert stats.probability_of_improvement([[1], [3]], [[2], [2]]) == pytest.approx(0.5)
+    assert stats.probability_of_improvement([[2]], [[2]]) == pytest.approx(0.5)  # ties: half
+    # task 1: 0.5; task 2: x=(5,5) vs y=(1,5): 2 of 4 pairs greater, 2 ties -> 0.75
+    x = [[1, 5], [3, 5]]
+    y = [[2, 1], [2, 5]]
+    assert stats.probability_of_improvement(x, y) == pytest.approx(0.625)
+    assert stats.probability_of_improvement(y, x) == pytest.approx(0.375)  # P(X>Y)+P(Y>X)=1
+    # equals the Mann-Whitney U statistic / (m n) per task
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(5, 1)), rng.normal(size=(7, 1))
+    u = sps.mannwhitneyu(a[:, 0], b[:, 0]).statistic
+    assert stats.probability_of_improvement(a, b) == pytest.approx(u / 35)
+
+
+def test_stratified_bootstrap_resamples_within_tasks():
+    a = np.array([[0.0, 10.0], [1.0, 11.0]])
+    reps = stats.stratified_bootstrap(a, stats.mean, reps=500, seed=0)
+    # every replicate mixes one draw per task: (x0 + x1)/2 with x0 in {0,1}, x1 in {10,11},
+    # so within [5, 6] in steps of 0.25; pooling across tasks would leave that range
+    assert reps.min() >= 5.0 and reps.max() <= 6.0
+    assert set(np.round(reps * 4) / 4) <= {5.0, 5.25, 5.5, 5.75, 6.0}
+    assert reps.mean() == pytest.approx(5.5, abs=0.05)
+    # the python path (any statistic) agrees with the vectorized mean path
+    slow = stats.stratified_bootstrap(a, lambda m: float(np.mean(m)), reps=500, seed=0)
+    np.testing.assert_allclose(slow, reps)
+    # one run: nothing to resample, zero-width interval
+    assert stats.percentile_ci(stats.stratified_bootstrap([[0.3, 0.7]], stats.iqm, 100)) == (
+        pytest.approx(0.5), pytest.approx(0.5))
+
+
+def test_bootstrap_ci_of_a_mean():
+    lo, hi = stats.bootstrap_ci([0.0, 1.0], reps=4000)
+    assert (lo, hi) == (0.0, 1.0)         # replicate means in {0, .5, 1}, each tail 25%
+    lo, hi = stats.bootstrap_ci([0.2, 0.4, 0.6, 0.8, 1.0], reps=4000)
+    assert 0.2 < lo < 0.6 < hi < 1.0
+
+
+def _frame(rows):
+    return pd.DataFrame(rows, columns=["method", "task", "seed", "normalized"])
+
+
+def test_score_matrices_refuse_unequal_seeds_and_duplicates():
+    rows = [("ild", "a", 0, 1.0), ("ild", "a", 1, 0.8), ("bc", "a", 0, 0.5), ("bc", "a", 1, 0.4),
+            ("ild", "b", 0, 0.9), ("ild", "b", 1, 0.7), ("bc", "b", 0, 0.3)]
+    with pytest.raises(stats.ShapeError, match="bc on b has 1 seeds"):
+        stats.score_matrices(_frame(rows))
+    mats = stats.score_matrices(_frame(rows), tasks=["a"])
+    assert mats["ild"].shape == (2, 1) and mats["bc"]["a"].tolist() == [0.5, 0.4]
+    with pytest.raises(stats.ShapeError, match="appears twice"):
+        stats.score_matrices(_frame(rows + [("bc", "a", 0, 0.6)]))
+    with pytest.raises(stats.ShapeError, match="NaN"):
+        stats.iqm([[0.1, np.nan]])
+
+
+def test_aggregate_and_improvement_tables():
+    rows = [(m, t, s, v) for m, vals in (("ild", [[1.0, 0.9], [0.8, 0.7]]),
+                                         ("bc", [[0.5, 0.3], [0.4, 0.2]]))
+            for s, row in enumerate(vals) for t, v in zip("ab", row)]
+    mats = stats.score_matrices(_frame(rows))
+    agg = stats.aggregate_table(mats, reps=300).set_index("method")
+    assert agg.loc["ild", "mean"] == pytest.approx(0.85)
+    assert agg.loc["ild", "iqm"] == pytest.approx(0.85)   # middle two of .7 .8 .9 1.0
+    assert agg.loc["bc", "iqm"] == pytest.approx(0.35)
+    assert agg.loc["bc", "iqm_lo"] <= 0.35 <= agg.loc["bc", "iqm_hi"]
+    imp = stats.improvement_table(mats, "ild", reps=300)
+    assert imp.comparison.tolist() == ["P(ild > bc)"]
+    assert imp.p.iloc[0] == 1.0 and imp.lo.iloc[0] == 1.0     # every pair, every replicate
+    with pytest.raises(stats.ShapeError, match="no scores for 'dac'"):
+        stats.improvement_table(mats, "dac")
+
+
+def test_curve_metrics_hand_values():
+    curve = [{"train_s": 30, "normalized": 0.6}, {"train_s": 10, "normalized": 0.2},
+             {"train_s": 50, "normalized": 1.0}]
+    # 0 before 10 s, 0.2 for 20 s, 0.6 for 20 s, 1.0 for 10 s, over a 60 s horizon
+    assert curves.auc(curve, 60) == pytest.approx((0.2 * 20 + 0.6 * 20 + 1.0 * 10) / 60)
+    assert curves.auc(curve, 20) == pytest.approx(0.2 * 10 / 20)   # clipped at the horizon
+    assert curves.time_to(curve, 0.5) == 30 and curves.time_to(curve, 0.9) == 50
+    assert curves.time_to(curve, 1.1) is None
+    np.testing.assert_allclose(curves.value_at(curve, [0, 10, 29, 30, 100]),
+                               [0, 0.2, 0.2, 0.6, 1.0])
+    assert curves.auc([], 60) == 0.0
+    with pytest.raises(ValueError, match="horizon"):
+        curves.auc(curve, 0)
