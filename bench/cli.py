@@ -5,7 +5,9 @@
     ildbench run --method M --task T --seed S --budget 300s [--budget-steps N]
     ildbench sweep --methods M.. --tasks T.. --seeds N --budget 10m [--executor ray] [--dry-run]
     ildbench quick                      the main job: a quick leaderboard on the defaults
-    ildbench leaderboard                print + write results/leaderboard.{md,csv}
+    ildbench leaderboard                table, aggregates and curves from the store
+    ildbench check [--update]           CI regression gate (canary suite vs reference)
+    ildbench render --task T --method M HTML: expert demo next to the method's final policy
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench expert train --task T      train a PPO expert (progress, time left)
     ildbench expert demo --task T       roll the expert into the task's demo file
@@ -170,6 +172,26 @@ def cmd_leaderboard(args):
     return 0
 
 
+def cmd_check(args):
+    from bench.check import REFERENCE, check
+    from bench.runner import enable_compilation_cache
+    enable_compilation_cache(args.jax_cache)
+    passed, report = check(args.reference or REFERENCE, update=args.update,
+                           log=(lambda s: print(s, flush=True)) if args.verbose else
+                           (lambda s: None))
+    print(report)
+    return 0 if passed else 1
+
+
+def cmd_render(args):
+    from bench.render import render_pair
+    from bench.store import Store
+    from tasks import get_spec
+    get_spec(args.task)
+    print(f"written: {render_pair(Store(args.store), args.task, args.method, args.out, args.seed)}")
+    return 0
+
+
 def cmd_plot_robustness(args):
     from bench.plots import robustness_plot
     from bench.store import Store
@@ -254,6 +276,20 @@ def build_parser():
     p = sub.add_parser("leaderboard", help="aggregate the store into a table")
     p.add_argument("--out", default="results")
     p.set_defaults(fn=cmd_leaderboard)
+    p = sub.add_parser("check", help="CI regression gate: canary suite vs committed reference")
+    p.add_argument("--update", action="store_true",
+                   help="rewrite the reference from this run (after an intended change)")
+    p.add_argument("--reference", default=None, help="reference file (default: "
+                   "results/canary/reference.json)")
+    p.add_argument("--verbose", action="store_true", help="print the runs' progress")
+    p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
+    p.set_defaults(fn=cmd_check)
+    p = sub.add_parser("render", help="HTML: the expert demo next to a method's final policy")
+    p.add_argument("--task", required=True)
+    p.add_argument("--method", required=True)
+    p.add_argument("--seed", type=int, default=None, help="default: the best-scoring seed")
+    p.add_argument("--out", default="results")
+    p.set_defaults(fn=cmd_render)
     p = sub.add_parser("plot-robustness", help="normalized score vs perturbation magnitude")
     p.add_argument("--task", required=True)
     p.add_argument("--out", default="results")

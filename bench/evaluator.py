@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bench.api import InformationError, Policy
-from tasks.core import Task
+from tasks.core import Task, env_matched_state
 
 EVAL_KEY_SALT = 0x5EED  # eval keys never collide with a method's training keys of that seed
 
@@ -49,6 +49,8 @@ class EvalResult:
     """(N,) steps before termination (episode_length if none)."""
     normalized: np.ndarray | None
     """(N,) normalized returns, or None without references."""
+    trajectory: np.ndarray | None = None
+    """(T+1, state_dim) matched states of the first episode (renders, trajectory checks)."""
 
     @property
     def mean_return(self) -> float:
@@ -90,46 +92,56 @@ def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory
                 a = act(params, x, k, deterministic)
             else:
                 a, mem = act(params, x, k, deterministic, mem)
-            return (_step_masked(env, s, a, alive, ret, length), mem), None
+            nxt = _step_masked(env, s, a, alive, ret, length)
+            return (nxt, mem), env_matched_state(env, nxt[0])
 
         mem = None if init_memory is None else init_memory(params, jax.random.fold_in(k_act, 1))
         init = ((s, jnp.ones(()), jnp.zeros(()), jnp.zeros(())), mem)
-        ((_, _, ret, length), _), _ = jax.lax.scan(body, init,
-                                                   jax.random.split(k_act, horizon))
-        return ret, length
+        ((_, _, ret, length), _), states = jax.lax.scan(body, init,
+                                                        jax.random.split(k_act, horizon))
+        return ret, length, jnp.concatenate([env_matched_state(env, s)[None], states])
 
-    return jax.jit(jax.vmap(episode, in_axes=(None, 0)))
+    def batch(params, keys):
+        ret, length, states = jax.vmap(episode, in_axes=(None, 0))(params, keys)
+        return ret, length, states[0]  # only the first episode's states leave the device
+    return jax.jit(batch)
 
 
 @functools.lru_cache(maxsize=16)
 def _batched_env_fns(env):
     reset = jax.jit(jax.vmap(env.reset))
     step = jax.jit(jax.vmap(lambda s, a, alive, ret, n: _step_masked(env, s, a, alive, ret, n)))
-    return reset, step
+    first = jax.jit(lambda s: env_matched_state(env, jax.tree_util.tree_map(lambda x: x[0], s)))
+    return reset, step, first
 
 
 def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
-                 deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
+                 deterministic: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(returns (N,), lengths (N,), matched states of the first episode (T+1, S))."""
     keys = jax.random.split(key, num_episodes)
     if policy.kind in ("jax", "jax_state"):
         f = _jax_episodes(task.env, policy.act, policy.kind, task.episode_length, deterministic,
                           policy.init_memory)
-        ret, length = f(policy.params, keys)
-        return np.asarray(ret, np.float64), np.asarray(length, np.int64)
+        ret, length, states = f(policy.params, keys)
+        return (np.asarray(ret, np.float64), np.asarray(length, np.int64),
+                np.asarray(states, np.float32))
     if policy.kind != "host":
         raise ValueError(f"unknown policy kind {policy.kind!r}; use 'jax', 'host' or 'jax_state'")
     # Host policy (torch/numpy): one batched jitted env call per step, one conversion each way.
-    reset, step = _batched_env_fns(task.env)
+    reset, step, first = _batched_env_fns(task.env)
     reset_keys = jax.vmap(lambda k: jax.random.split(k)[0])(keys)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).tolist())
     s = reset(reset_keys)
     alive = jnp.ones(num_episodes)
     ret = jnp.zeros(num_episodes)
     length = jnp.zeros(num_episodes)
+    states = [first(s)]
     for _ in range(task.episode_length):
         a = policy.act(policy.params, np.asarray(s.obs), rng, deterministic)
         s, alive, ret, length = step(s, jnp.asarray(a, jnp.float32), alive, ret, length)
-    return np.asarray(ret, np.float64), np.asarray(length, np.int64)
+        states.append(first(s))
+    return (np.asarray(ret, np.float64), np.asarray(length, np.int64),
+            np.asarray(jnp.stack(states), np.float32))
 
 
 class Evaluator:
@@ -154,9 +166,10 @@ class Evaluator:
         if policy.kind == "jax_state" and not self.allow_sim_at_test:
             raise InformationError("this policy acts on the simulator state; its method must "
                                    "declare Uses(sim_at_test=True)")
-        ret, length = run_episodes(self.task, policy, eval_key(seed), self.config.num_episodes,
-                                   self.config.deterministic)
-        return EvalResult(returns=ret, lengths=length, normalized=self.normalize(ret))
+        ret, length, states = run_episodes(self.task, policy, eval_key(seed),
+                                           self.config.num_episodes, self.config.deterministic)
+        return EvalResult(returns=ret, lengths=length, normalized=self.normalize(ret),
+                          trajectory=states)
 
 
 def random_policy(action_size: int) -> Policy:

@@ -130,7 +130,12 @@ def to_markdown(board: pd.DataFrame) -> str:
 def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:
     os.makedirs(out_dir, exist_ok=True)
     md, csv = os.path.join(out_dir, "leaderboard.md"), os.path.join(out_dir, "leaderboard.csv")
+    renders = sorted(n for n in os.listdir(out_dir)
+                     if n.startswith("render_") and n.endswith(".html"))
     with open(md, "w") as f:
         f.write(to_markdown(board))
+        if renders:  # made by `ildbench render`; linked here
+            f.write("\nRenders (expert demo next to a final policy): " +
+                    ", ".join(f"[{n[7:-5]}]({n})" for n in renders) + "\n")
     board.to_csv(csv, index=False)
     return md, csv

@@ -110,6 +110,7 @@ class RunContext:
         self.clock = Clock(budget.charge_compile)
         self.curve: list[dict] = []
         self.last_metrics: dict = {}
+        self.last_trajectory = None  # matched states of the last evaluation's first episode
         self.log = log
         self._evaluator = evaluator
         self._next_eval_s = 0.0 if budget.seconds is None else budget.seconds / budget.evals
@@ -152,6 +153,7 @@ class RunContext:
             res = self._evaluator.evaluate(policy, self.seed)
         if not res.finite:
             raise Diverged(f"non-finite evaluation return at env step {env_steps}")
+        self.last_trajectory = res.trajectory
         point = {"train_s": round(self.elapsed(), 3), "env_steps": int(env_steps),
                  "return": res.mean_return, "normalized": res.mean_normalized}
         self.curve.append(point)
@@ -269,6 +271,9 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "started": started.isoformat(), "finished": datetime.datetime.now(
             datetime.timezone.utc).isoformat(),
     }
+    if status == "ok" and ctx.last_trajectory is not None:
+        store.write_trajectory(p.run_id, ctx.last_trajectory)
+        record["trajectory"] = os.path.basename(store.trajectory_path(p.run_id))
     store.write(record)
     log(f"run {p.run_id}: {status}, final return {record['final_return']}, normalized "
         f"{record['final_normalized']}" + (f"\n{message}" if status == "failed" else ""))

@@ -58,6 +58,34 @@ class Store:
         write_json_atomic(path, record)
         return path
 
+    def trajectory_path(self, run_id: str) -> str:
+        return os.path.join(self.root, f"{run_id}.traj.npz")
+
+    def write_trajectory(self, run_id: str, states) -> str:
+        """The final policy's first evaluation episode, as matched states (T+1, S) float32
+        (for renders); written atomically beside the record."""
+        import numpy as np
+        path = self.trajectory_path(run_id)
+        os.makedirs(self.root, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".npz")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, states=np.asarray(states, np.float32))
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    def trajectory(self, run_id: str):
+        import numpy as np
+        try:
+            with np.load(self.trajectory_path(run_id)) as z:
+                return z["states"]
+        except FileNotFoundError:
+            return None
+
     def records(self) -> Iterator[dict]:
         if not os.path.isdir(self.root):
             return

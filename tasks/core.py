@@ -18,6 +18,15 @@ def brax_matched_state(pipeline_state) -> jax.Array:
     return jnp.concatenate([x.pos.ravel(), x.rot.ravel(), xd.vel.ravel(), xd.ang.ravel()])
 
 
+def env_matched_state(env, state: State) -> jax.Array:
+    """The matched state of one env state: the env's own `matched_state` (tasks/ envs) or the
+    brax layout above (wrappers forward attribute lookups to the inner env)."""
+    own = getattr(env, "matched_state", None)
+    if own is not None:
+        return own(state.pipeline_state)
+    return brax_matched_state(state.pipeline_state)
+
+
 class Canonical(Wrapper):
     """Rewards and done flags as float32 arrays (some brax envs return Python floats), so
     states have one fixed pytree type and scan carries stay stable."""
@@ -100,10 +109,7 @@ class Task:
 
     def matched_state(self, state: State) -> jax.Array:
         """The vector imitation losses compare, for one (unbatched) env state."""
-        own = getattr(self.env, "matched_state", None)
-        if own is not None:
-            return own(state.pipeline_state)
-        return brax_matched_state(state.pipeline_state)
+        return env_matched_state(self.env, state)
 
     @functools.cached_property
     def state_size(self) -> int:

@@ -1,4 +1,5 @@
 """Leaderboard aggregation on hand-made records."""
+import pandas as pd
 import pytest
 
 from bench import leaderboard as lb
@@ -58,3 +59,58 @@ def test_different_configs_are_not_pooled(store):
                                 "evals": 10}})
     board = lb.leaderboard(store)
     assert sorted(board.seeds.tolist()) == [1, 2] and board.variant.nunique() == 2
+
+
+def _full(store, rid, method, task, seed, norm, curve, transfer=None, ref=False, secs=60.0):
+    store.write({"run_id": rid, "task": task, "method": method, "seed": seed, "status": "ok",
+                 "final_normalized": norm, "final_return": norm * 100, "curve": curve,
+                 "uses": {"demo_states": True}, "reference_method": ref, "config": {},
+                 "method_version": "1", "preset": None,
+                 "transfer": transfer or {},
+                 "budget": {"seconds": secs, "env_steps": None, "charge_compile": True,
+                            "evals": 10}, "train_s": secs})
+
+
+def _pt(t, s):
+    return {"train_s": t, "normalized": s, "env_steps": 0, "return": 0.0}
+
+
+def test_leaderboard_anytime_columns_ci_and_paper(store):
+    _full(store, "a", "ild", "hopper", 0, 1.0, [_pt(10, 0.2), _pt(30, 0.6), _pt(50, 1.0)])
+    _full(store, "b", "ild", "hopper", 1, 0.6, [_pt(20, 0.6)])
+    row = lb.leaderboard(store).iloc[0]
+    # AUC: run a (0.2*20 + 0.6*20 + 1.0*10)/60, run b 0.6*40/60
+    assert row.auc_mean == pytest.approx(((4 + 12 + 10) / 60 + 24 / 60) / 2)
+    assert row.t50_mean == pytest.approx(25.0) and row.t50_reached == 2   # 30 s and 20 s
+    assert row.t90_mean == pytest.approx(50.0) and row.t90_reached == 1
+    assert (row.ci_lo, row.ci_hi) == (pytest.approx(0.6), pytest.approx(1.0))
+    assert row.paper_return == 243.93 and row.paper_expert == 292.83
+    md = lb.to_markdown(lb.leaderboard(store))
+    assert "243.93 (expert 292.83)" in md and "25s (2/2)" in md and "50s (1/2)" in md
+
+
+def test_report_aggregates_curves_and_refusal(store, tmp_path):
+    from bench.report import write_report
+    # ild > bc on both tasks in every seed; shac is a reference (excluded from aggregates)
+    for seed in range(2):
+        for task, (i, b) in {"hopper": (0.9, 0.5), "reacher": (0.8, 0.4)}.items():
+            i, b = i - 0.1 * seed, b - 0.1 * seed
+            _full(store, f"i{task}{seed}", "ild", task, seed, i, [_pt(5, i)])
+            _full(store, f"b{task}{seed}", "bc", task, seed, b, [_pt(5, b)])
+        _full(store, f"s{seed}", "shac", "hopper", seed, 1.0, [_pt(5, 1.0)], ref=True)
+    paths = write_report(store, str(tmp_path / "out"), reps=200)
+    names = {p.rsplit("/", 1)[-1] for p in paths}
+    assert {"leaderboard.md", "aggregates.md", "aggregates.csv", "curves_hopper.png",
+            "curves_reacher.png", "curves_aggregate.png"} <= names
+    agg = pd.read_csv(tmp_path / "out" / "aggregates.csv")
+    nominal = agg[(agg.score == "normalized") & agg.method.notna()].set_index("method")
+    assert set(nominal.index) == {"ild", "bc"}                     # the reference left out
+    assert nominal.loc["ild", "mean"] == pytest.approx((0.9 + 0.8 + 0.8 + 0.7) / 4)
+    assert nominal.loc["ild", "iqm"] == pytest.approx(0.8)         # middle of .7 .8 .8 .9
+    poi = agg[agg.comparison == "P(ild > bc)"]
+    assert poi.p.iloc[0] == 1.0
+    # a third seed for one cell only: aggregates refuse and say which cell is short
+    _full(store, "extra", "ild", "hopper", 2, 0.5, [_pt(5, 0.5)])
+    write_report(store, str(tmp_path / "out2"), reps=50)
+    text = (tmp_path / "out2" / "aggregates.md").read_text()
+    assert "not aggregated: unequal seed counts" in text

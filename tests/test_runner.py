@@ -171,3 +171,13 @@ def test_persistent_compilation_cache_is_reused_across_processes(tmp_path):
                                  capture_output=True, text=True).stdout.split()[-1]
     assert run() == "0" and os.listdir(cache)  # first process compiles and writes
     assert int(run()) >= 1                      # second process loads from the cache
+
+
+def test_final_policy_trajectory_is_stored_beside_the_record(toy, store):
+    rec, _ = execute(prepare(_req()), store, log=lambda s: None)
+    traj = store.trajectory(rec["run_id"])
+    assert rec["trajectory"] == f"{rec['run_id']}.traj.npz"
+    task = make_task("pointmass")
+    assert traj.shape == (task.episode_length + 1, task.state_size)
+    assert not [n for n in os.listdir(store.root) if n.startswith(".tmp-")]
+    assert [r["run_id"] for r in store.records()] == [rec["run_id"]]  # not read as a record

@@ -1,6 +1,8 @@
 """Behaviour cloning on the demo's (o_t, a_t) pairs."""
 from __future__ import annotations
 
+import functools
+
 import flax.struct
 import jax
 import jax.numpy as jnp
@@ -34,15 +36,16 @@ def train(task, demo, config: BCConfig, ctx, seed: int) -> TrainResult:
         params, opt_state, loss, gnorm = bc_step(s.params, s.opt_state, k)
         return TrainingState(params, opt_state, key), (loss, gnorm)
 
-    @jax.jit
-    def chunk(s: TrainingState):
-        return jax.lax.scan(update, s, None, length=config.chunk)
+    @functools.partial(jax.jit, static_argnums=1)
+    def chunk(s: TrainingState, length: int):
+        return jax.lax.scan(update, s, None, length=length)
 
     done = 0
     act = policy.act
     while done < config.updates and not ctx.should_stop(0):
-        state, (loss, gnorm) = chunk(state)
-        done += config.chunk
+        n = min(config.chunk, config.updates - done)  # exactly `updates`, never a chunk more
+        state, (loss, gnorm) = chunk(state, n)
+        done += n
         ctx.report(Policy(act, state.params), env_steps=0,
                    metrics={"train/loss": loss[-1], "grad/norm_raw": gnorm[-1],
                             "train/updates": done})

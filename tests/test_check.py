@@ -1,0 +1,69 @@
+"""The CI regression gate: tolerance arithmetic, and a planted regression that must fail."""
+import json
+
+import pytest
+
+from bench import check
+from bench.cli import main
+
+
+def _ref(mean, std=0.0, n=2):
+    return {"mean": mean, "std": std, "n": n, "scores": []}
+
+
+def test_compare_tolerances_hand_values():
+    ref = {"a/x": _ref(0.9), "b/x": _ref(0.8, std=0.1, n=4), "c/x": _ref(0.5)}
+    now = {"a/x": _ref(0.86), "b/x": _ref(0.66), "c/x": {"mean": None, "scores": [None, 0.5]}}
+    v = {x.key: x for x in check.compare(ref, now, abs_tol=0.05, z=3)}
+    assert v["a/x"].passed and v["a/x"].tolerance == 0.05          # -0.04 within 0.05
+    assert v["b/x"].tolerance == pytest.approx(0.15)               # 3 * 0.1 / sqrt(4)
+    assert v["b/x"].passed                                         # -0.14 within 0.15
+    assert not v["c/x"].passed and "failed or diverged" in v["c/x"].why
+    v = {x.key: x for x in check.compare(ref, {**now, "a/x": _ref(0.84)}, 0.05, 3)}
+    assert not v["a/x"].passed and "dropped 0.060 > tolerance 0.050" in v["a/x"].why
+    v = {x.key: x for x in check.compare({"a/x": _ref(0.9)}, {"a/x": _ref(1.0),
+                                                               "n/x": _ref(0.1)})}
+    assert v["a/x"].passed and v["n/x"].passed and "no reference yet" in v["n/x"].why
+    v = check.compare({"a/x": _ref(0.9)}, {})
+    assert not v[0].passed and "missing" in v[0].why
+    table = check.render(check.compare(ref, now))
+    a_line = next(l for l in table.splitlines() if l.startswith("a/x"))
+    assert "0.900" in a_line and "0.860" in a_line and "-0.040" in a_line and "PASS" in a_line
+    assert "FAIL" in next(l for l in table.splitlines() if l.startswith("c/x"))
+
+
+def test_summarize_mean_std_and_failed_runs():
+    s = check.summarize({"a/x": [0.5, 0.7], "b/x": [0.5, None]})
+    assert s["a/x"]["mean"] == pytest.approx(0.6) and s["a/x"]["std"] == pytest.approx(0.1414213562)
+    assert s["b/x"]["mean"] is None and s["b/x"]["scores"] == [0.5, None]
+
+
+def test_gate_passes_unchanged_and_fails_a_planted_regression(tmp_path):
+    bc = [c for c in check.SUITE if c.key == "bc/pointmass"]
+    ref = tmp_path / "reference.json"
+    ok, report = check.check(str(ref), update=True, suite=bc, log=lambda s: None)
+    assert ok and ref.exists()
+    ok, report = check.check(str(ref), suite=bc, log=lambda s: None)
+    assert ok and "PASS" in report and "bc/pointmass" in report
+    # planted regression: BC trained for 1 update instead of 300 (near-random policy)
+    ok, report = check.check(str(ref), suite=bc, extra={"bc/pointmass": {"updates": 1}},
+                             log=lambda s: None)
+    assert not ok
+    line = next(l for l in report.splitlines() if l.startswith("bc/pointmass"))
+    assert "FAIL: dropped" in line and "canary gate: FAIL" in report
+
+
+def test_committed_reference_covers_the_suite():
+    data = json.load(open(check.REFERENCE))
+    assert set(data["canaries"]) == {c.key for c in check.SUITE}
+    assert all(v["mean"] is not None and v["n"] == len(check.SEEDS)
+               for v in data["canaries"].values())
+
+
+def test_bad_reference_file_is_a_clear_error(tmp_path, capsys):
+    bad = tmp_path / "ref.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        check.load_reference(str(bad))
+    with pytest.raises(FileNotFoundError, match="ildbench check --update"):
+        check.load_reference(str(tmp_path / "none.json"))
