@@ -4,7 +4,6 @@ import json
 import pytest
 
 from bench import check
-from bench.cli import main
 
 
 def _ref(mean, std=0.0, n=2):
