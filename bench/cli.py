@@ -8,6 +8,8 @@
     ildbench leaderboard                table, aggregates and curves from the store
     ildbench check [--update]           CI regression gate (canary suite vs reference)
     ildbench render --task T --method M HTML: expert demo next to the method's final policy
+    ildbench tradeoff backends|budget|ild --task T   speed-accuracy tables and plots
+    ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench expert train --task T      train a PPO expert (progress, time left)
     ildbench expert demo --task T       roll the expert into the task's demo file
@@ -125,11 +127,14 @@ def _run_all(args, requests):
     else:
         from bench.sweep import run_local
         enable_compilation_cache(args.jax_cache)
-        outcomes = run_local(prepared, store, force=args.force, log=log)
-    return 1 if any(o.status == "failed" for o in outcomes) else 0
+        outcomes = run_local(prepared, store, force=args.force, log=log,
+                             isolate=not getattr(args, "in_process", False),
+                             jax_cache=args.jax_cache)
+    return 1 if any(o.status in ("failed", "crashed") for o in outcomes) else 0
 
 
 def cmd_run(args):
+    args.in_process = True  # one cell: no sweep-long accumulation to isolate from
     return _run_all(args, _requests(args, [args.method], [args.task], [args.seed]))
 
 
@@ -192,6 +197,56 @@ def cmd_render(args):
     return 0
 
 
+def cmd_tradeoff(args):
+    from bench import tradeoff as tr
+    from bench.store import Store
+    from tasks import get_spec
+    get_spec(args.task)
+    out = args.out or tr.OUT
+    if args.part == "backends":
+        df = tr.backends(args.task, batch=args.batch)
+        paths = tr._save(df, args.task, "backends", out) + [tr.plot_backends(df, args.task, out)]
+    elif args.part == "budget":
+        df = tr.budget_table(Store(args.store), args.task)
+        paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
+    else:
+        from bench.budget import parse_seconds
+        from bench.runner import enable_compilation_cache, prepare
+        from bench.sweep import run_local
+        enable_compilation_cache(args.jax_cache)
+        store = Store(args.store)
+        reqs = tr.ild_requests(args.task, parse_seconds(args.budget or "3m"),
+                               seeds=range(args.seeds))
+        run_local([prepare(r) for r in reqs], store, log=lambda s: print(s, flush=True),
+                  jax_cache=args.jax_cache)
+        df = tr.ild_table(store, args.task)
+        paths = tr._save(df, args.task, "ild", out) + [tr.plot_ild(df, args.task, out)]
+    print(open(paths[1]).read())
+    print("written: " + ", ".join(paths))
+    return 0
+
+
+def cmd_ablate(args):
+    from bench import ablation
+    from bench.budget import parse_seconds
+    from bench.runner import enable_compilation_cache, prepare
+    from bench.store import Store
+    from bench.sweep import run_local
+    seconds = parse_seconds(args.budget)
+    store = Store(args.store)
+    if not args.table_only:
+        reqs = ablation.requests(args.task, seconds, seeds=range(args.seeds),
+                                 names=args.settings)
+        prepared = [prepare(r) for r in reqs]
+        enable_compilation_cache(args.jax_cache)
+        run_local(prepared, store, log=lambda s: print(s, flush=True), jax_cache=args.jax_cache)
+    df = ablation.table(store, args.task, seconds)
+    paths = ablation.write(df, args.task, args.out)
+    print(open(paths[1]).read())
+    print("written: " + ", ".join(paths))
+    return 0
+
+
 def cmd_plot_robustness(args):
     from bench.plots import robustness_plot
     from bench.store import Store
@@ -233,6 +288,8 @@ def _add_run_options(p, budget_default=None):
     p.add_argument("--force", action="store_true", help="re-run finished cells")
     p.add_argument("--dry-run", action="store_true", help="print the plan only")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
+    p.add_argument("--in-process", action="store_true",
+                   help="run cells in this process (default: a fresh child process per cell)")
 
 
 def build_parser():
@@ -290,6 +347,24 @@ def build_parser():
     p.add_argument("--seed", type=int, default=None, help="default: the best-scoring seed")
     p.add_argument("--out", default="results")
     p.set_defaults(fn=cmd_render)
+    p = sub.add_parser("tradeoff", help="speed-accuracy trade-offs: backends, budget, ILD")
+    p.add_argument("part", choices=["backends", "budget", "ild"])
+    p.add_argument("--task", required=True)
+    p.add_argument("--batch", type=int, default=16, help="backends: parallel rollouts")
+    p.add_argument("--budget", default=None, help="ild: training budget per cell (default 3m)")
+    p.add_argument("--seeds", type=int, default=1, help="ild: seeds per cell")
+    p.add_argument("--out", default=None, help="default results/tradeoff")
+    p.add_argument("--jax-cache", default=None)
+    p.set_defaults(fn=cmd_tradeoff)
+    p = sub.add_parser("ablate", help="the paper's ILD ablations (Table 3, Table 7)")
+    p.add_argument("--task", required=True)
+    p.add_argument("--budget", default="3m")
+    p.add_argument("--seeds", type=int, default=1)
+    p.add_argument("--settings", nargs="*", default=None, help="subset of settings")
+    p.add_argument("--table-only", action="store_true", help="tabulate finished runs only")
+    p.add_argument("--out", default="results/ablation")
+    p.add_argument("--jax-cache", default=None)
+    p.set_defaults(fn=cmd_ablate)
     p = sub.add_parser("plot-robustness", help="normalized score vs perturbation magnitude")
     p.add_argument("--task", required=True)
     p.add_argument("--out", default="results")

@@ -1,5 +1,13 @@
-"""Running a grid of prepared cells: the local executor (in-process, one cell at a time) and
-the Ray executor (cells as Ray tasks, each with the same CPU/GPU request).
+"""Running a grid of prepared cells: the local executor (one cell at a time, each in a fresh
+child process by default) and the Ray executor (cells as Ray tasks, each with the same
+CPU/GPU request).
+
+Process isolation: a long sweep in one process accumulates compiled executables (every
+method x perturbed env compiles its own) until LLVM fails to map memory and the process
+dies (seen on a 2-core box after ~6 cells with transfer evaluation: vm.max_map_count is
+65530). A child per cell starts clean, and a hard crash (segfault, OOM kill) costs that cell
+only: it is reported, left unrecorded, and re-run on resume. The persistent compilation
+cache keeps the re-compiling cheap.
 
 Both are idempotent: a cell whose content-hashed record is finished in the store is skipped,
 so an interrupted sweep resumes where it stopped. Records are written by whichever process
@@ -87,15 +95,57 @@ def _outcome(p: Prepared, rec: dict, skipped: bool, wall: float) -> Outcome:
                    rec.get("final_normalized"), skipped, wall)
 
 
+CRASH_HOOK = "ILDBENCH_TEST_CRASH_CELL"
+"""Test hook: a child whose cell is '<method>/<task>/<seed>' exits hard before running."""
+
+
+def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None) -> None:
+    import os
+    r = request
+    if os.environ.get(CRASH_HOOK) == f"{r.method}/{r.task}/{r.seed}":
+        os._exit(70)
+    from bench.runner import enable_compilation_cache
+    enable_compilation_cache(jax_cache)
+    execute(prepare(request), Store(store_root), force=force,
+            log=lambda s: print(s, flush=True))
+
+
+def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
+                  log: Callable[[str], None]) -> tuple[dict, bool]:
+    import multiprocessing as mp
+    import os
+    proc = mp.get_context("spawn").Process(
+        target=_child, args=(p.request, os.path.abspath(store.root), force, jax_cache))
+    proc.start()
+    proc.join()
+    rec = store.get(p.run_id)
+    if rec is not None and (proc.exitcode == 0 or rec.get("status") in ("ok", "diverged",
+                                                                         "failed")):
+        return rec, False
+    why = (f"signal {-proc.exitcode}" if proc.exitcode and proc.exitcode < 0
+           else f"exit code {proc.exitcode}")
+    log(f"run {p.run_id}: the cell's process died ({why}) before writing a record; it is "
+        "left unrecorded and re-runs on resume")
+    return {"status": "crashed", "final_normalized": None}, False
+
+
 def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
-              log: Callable[[str], None] = print) -> list[Outcome]:
+              log: Callable[[str], None] = print, isolate: bool = True,
+              jax_cache: str | None = None) -> list[Outcome]:
+    """`isolate`: each cell in a fresh spawned process (default); False: in this process."""
     to_run = sum(force or store.finished(p.run_id) is None for p in prepared)
     progress = Progress(len(prepared), to_run, log)
     out = []
     try:
         for p in prepared:
             t0 = time.perf_counter()
-            rec, skipped = execute(p, store, force=force, log=log)
+            done = None if force else store.finished(p.run_id)
+            if done is not None:
+                rec, skipped = done, True
+            elif isolate:
+                rec, skipped = _run_isolated(p, store, force, jax_cache, log)
+            else:
+                rec, skipped = execute(p, store, force=force, log=log)
             o = _outcome(p, rec, skipped, time.perf_counter() - t0)
             progress.update(o)
             out.append(o)

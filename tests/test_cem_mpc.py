@@ -93,3 +93,21 @@ def test_objective_must_match_the_method(store):
                      eval=EvalConfig(num_episodes=2))
     rec, _ = execute(prepare(req), store, log=lambda s: None)
     assert rec["status"] == "failed" and "cem_mpc_track" in rec["message"]
+
+
+def test_planning_through_a_reward_hiding_view_of_a_task_with_metrics():
+    """Brax tasks report reward terms in state.metrics; the tracking planner sees the env
+    through HideReward (metrics dropped), yet is handed the evaluator's full state. The
+    scan carry must keep one structure (this failed on reacher and hopper)."""
+    from bench.access import HideReward
+    from methods.cem_mpc.train import CEMPlanner
+    task = make_task("pointmass")
+    cfg = CEMConfig(objective="track", horizon=4, population=8, elites=2, iterations=2)
+    goals = jnp.zeros((task.episode_length, task.state_size))
+    planner = CEMPlanner(HideReward(task.env), task.action_size, cfg,
+                         matched_state=task.matched_state, goals=goals,
+                         goal_mean=jnp.zeros(task.state_size), goal_std=jnp.ones(task.state_size))
+    s = task.env.reset(jax.random.PRNGKey(0))
+    s = s.replace(metrics={"reward_dist": jnp.zeros(()), "reward_ctrl": jnp.zeros(())})
+    a, _ = planner.act((), s, jax.random.PRNGKey(1), True, planner.init_memory((), None))
+    assert a.shape == (task.action_size,) and bool(jnp.isfinite(a).all())

@@ -34,7 +34,9 @@ class CEMPlanner:
         def body(carry, xs):
             s, alive, total = carry
             a, k = xs
-            s2 = self.env.step(s, a)
+            # The planner's env may report other metrics than the state it was handed (a
+            # reward-hiding view drops them): keep the carry's structure.
+            s2 = self.env.step(s, a).replace(metrics=s.metrics)
             if cfg.objective == "reward":
                 gain = s2.reward
             else:

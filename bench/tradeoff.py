@@ -1,0 +1,223 @@
+"""Speed-accuracy trade-offs ("users trade speed for accuracy: measure that trade").
+
+    ildbench tradeoff backends --task hopper    env-steps/s (forward and gradient) of each
+                                                physics backend beside its trajectory error
+                                                against the most accurate one (generalized)
+                                                on the same actions from the same states
+    ildbench tradeoff budget --store S --task T score reached vs training budget (1, 2, 5, 10
+                                                min), read off the anytime curves of runs
+                                                whose budget covers it
+    ildbench tradeoff ild --task T --budget 3m  ILD's truncation length x batch size grid:
+                                                final score, updates done, env-steps/s
+
+Every part writes results/tradeoff/<task>_<part>.csv/.md and a PNG.
+
+Budget part: a run's anytime score at t is the score of the policy it held at t. For the
+methods here the learning-rate schedules run over a fixed number of updates/epochs, not over
+the budget, so a run stopped by a budget t is the same run as a longer one read at t.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from bench import curves  # noqa: E402
+from bench.store import Store  # noqa: E402
+from tasks import TASKS, get_spec  # noqa: E402
+from tasks.core import Task, build_env  # noqa: E402
+
+BACKENDS = ("generalized", "positional", "spring")
+REFERENCE_BACKEND = "generalized"
+BUDGET_MINUTES = (1, 2, 5, 10)
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OUT = os.path.join(_REPO, "results", "tradeoff")
+
+
+def _task(name: str, backend: str) -> Task:
+    spec = dataclasses.replace(get_spec(name), backend=backend)
+    return Task(spec=spec, env=build_env(spec))
+
+
+def probe_actions(name: str, batch: int, horizon: int) -> tuple[jax.Array, jax.Array]:
+    """(actions (B, H, act), reset keys (B, 2)): the demo's own actions and initial states
+    where a demo exists, else smooth random actions (sinusoids of random phase, amplitude
+    0.5) from fixed keys."""
+    spec = get_spec(name)
+    if spec.demo_path and os.path.exists(spec.demo_path):
+        with np.load(spec.demo_path) as z:
+            acts, keys = z["actions"][:batch, :horizon], z["init_keys"][:batch]
+        return jnp.asarray(acts), jnp.asarray(keys, jnp.uint32)
+    act = _task(name, spec.backend).action_size
+    k1, k2 = jax.random.split(jax.random.PRNGKey(7))
+    phase = jax.random.uniform(k1, (batch, 1, act), maxval=2 * np.pi)
+    freq = jax.random.uniform(k2, (batch, 1, act), minval=0.05, maxval=0.3)
+    t = jnp.arange(horizon)[None, :, None]
+    return 0.5 * jnp.sin(freq * t + phase), jax.random.split(jax.random.PRNGKey(8), batch)
+
+
+def open_loop_positions(task: Task, actions, keys) -> np.ndarray:
+    """(B, H+1, bodies, 3) world positions of every body under open-loop actions."""
+    nb = task.state_size // 13
+
+    def one(acts, key):
+        s = task.env.reset(key)
+
+        def body(s, a):
+            s = task.env.step(s, a)
+            return s, task.matched_state(s)[:3 * nb]
+        _, pos = jax.lax.scan(body, s, acts)
+        return jnp.concatenate([task.matched_state(s)[None, :3 * nb], pos])
+    pos = jax.jit(jax.vmap(one))(actions, keys)
+    return np.asarray(pos).reshape(actions.shape[0], actions.shape[1] + 1, nb, 3)
+
+
+def backends(name: str, batch: int = 16, horizon: int = 128, repeats: int = 3,
+             log=print) -> pd.DataFrame:
+    from tasks.measure_backends import measure
+    actions, keys = probe_actions(name, batch, horizon)
+    ref_pos = None
+    rows = []
+    for backend in (REFERENCE_BACKEND,) + tuple(b for b in BACKENDS if b != REFERENCE_BACKEND):
+        row = {"task": name, "backend": backend, "registry_default": get_spec(name).backend
+               == backend}
+        try:
+            task = _task(name, backend)
+            pos = open_loop_positions(task, actions, keys)
+            if ref_pos is None:
+                ref_pos = pos
+            err = np.linalg.norm(pos - ref_pos, axis=-1).mean(axis=(0, 2))  # (H+1,) metres
+            row.update({"pos_err_step10_m": float(err[min(10, horizon)]),
+                        "pos_err_mean_m": float(err.mean()),
+                        "pos_err_final_m": float(err[-1]),
+                        "finite": bool(np.isfinite(pos).all())})
+            row.update(measure(task, batch, horizon, repeats))
+        except Exception as e:  # an unsupported backend is a row, not a crash
+            row["error"] = f"{type(e).__name__}: {e}"[:200]
+        log(str(row))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFrame:
+    """Per method (main variant), mean anytime score at each budget over runs whose budget
+    reaches it."""
+    rows = []
+    for r in store.records():
+        if r["task"] != task or r.get("status") not in ("ok", "diverged"):
+            continue
+        secs = (r.get("budget") or {}).get("seconds")
+        if not secs:
+            continue
+        for m in minutes:
+            if secs + 1e-6 >= 60 * m:
+                rows.append({"method": r["method"], "minutes": m, "seed": r["seed"],
+                             "normalized": float(curves.value_at(r.get("curve"), [60 * m])[0])})
+    df = pd.DataFrame(rows, columns=["method", "minutes", "seed", "normalized"])
+    if df.empty:
+        raise ValueError(f"no finished runs on {task!r} with a wall-clock budget in "
+                         f"{store.root}")
+    return (df.groupby(["method", "minutes"]).normalized.agg(["mean", "std", "count"])
+            .reset_index())
+
+
+def ild_requests(task: str, seconds: float, truncations=(1, 10, 30), batches=(8, 32, 128),
+                 seeds=(0,), preset: str | None = "cpu"):
+    from bench.budget import Budget
+    from bench.runner import RunRequest
+    return [RunRequest(method="ild", task=task, seed=s, budget=Budget(seconds=seconds, evals=5),
+                       preset=preset, overrides={"truncation": tr, "num_envs": b})
+            for s in seeds for tr in truncations for b in batches]
+
+
+def ild_table(store: Store, task: str) -> pd.DataFrame:
+    rows = []
+    for r in store.records():
+        if r["task"] != task or r["method"] != "ild" or r.get("status") not in ("ok",
+                                                                                "diverged"):
+            continue
+        c = r["config"]
+        rows.append({"truncation": c["truncation"], "batch": c["num_envs"], "seed": r["seed"],
+                     "status": r["status"], "normalized": r["final_normalized"],
+                     "updates": r["train_metrics"].get("train/updates"),
+                     "env_steps": r["env_steps"],
+                     "env_steps_per_s": r["env_steps"] / max(r["train_s"], 1e-9),
+                     "budget_s": r["budget"]["seconds"]})
+    return pd.DataFrame(rows)
+
+
+def _save(df: pd.DataFrame, task: str, part: str, out: str) -> list[str]:
+    os.makedirs(out, exist_ok=True)
+    base = os.path.join(out, f"{task}_{part}")
+    df.to_csv(base + ".csv", index=False)
+    with open(base + ".md", "w") as f:
+        f.write(df.to_markdown(index=False, floatfmt=".4g") + "\n")
+    return [base + ".csv", base + ".md"]
+
+
+def plot_backends(df: pd.DataFrame, task: str, out: str) -> str:
+    ok = df[df.get("error", pd.Series([""] * len(df))).fillna("") == ""]
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for _, r in ok.iterrows():
+        for col, mk in (("fwd_steps_per_s", "o"), ("grad_steps_per_s", "s")):
+            ax.scatter(r[col], r["pos_err_mean_m"], marker=mk)
+            ax.annotate(f"{r['backend']} ({col[:4]})", (r[col], r["pos_err_mean_m"]),
+                        fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel("env-steps/s (o forward, s gradient)")
+    ax.set_ylabel(f"mean body position error vs {REFERENCE_BACKEND} (m)")
+    ax.set_title(f"{task}: backend speed vs accuracy")
+    fig.tight_layout()
+    path = os.path.join(out, f"{task}_backends.png")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_budget(df: pd.DataFrame, task: str, out: str) -> str:
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for method, g in df.groupby("method"):
+        ax.errorbar(g.minutes, g["mean"], yerr=g["std"].fillna(0), marker="o", label=method,
+                    capsize=3)
+    ax.set_xscale("log")
+    ax.set_xticks(BUDGET_MINUTES, [str(m) for m in BUDGET_MINUTES])
+    ax.set_xlabel("training budget (minutes)")
+    ax.set_ylabel("normalized score")
+    ax.set_title(f"{task}: score vs budget")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = os.path.join(out, f"{task}_budget.png")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_ild(df: pd.DataFrame, task: str, out: str) -> str:
+    piv = df.groupby(["truncation", "batch"]).normalized.mean().unstack("batch")
+    fig, ax = plt.subplots(figsize=(4.4, 3.4))
+    im = ax.imshow(piv.to_numpy(), cmap="viridis", aspect="auto")
+    ax.set_xticks(range(piv.shape[1]), [str(c) for c in piv.columns])
+    ax.set_yticks(range(piv.shape[0]), [str(i) for i in piv.index])
+    for (i, j), v in np.ndenumerate(piv.to_numpy()):
+        ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=8)
+    ax.set_xlabel("batch (parallel rollouts)")
+    ax.set_ylabel("truncation length")
+    ax.set_title(f"{task}: ILD final score at {df.budget_s.iloc[0]:g} s")
+    fig.colorbar(im)
+    fig.tight_layout()
+    path = os.path.join(out, f"{task}_ild.png")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def known_tasks() -> list[str]:
+    return [n for n in TASKS if n != "pointmass"]

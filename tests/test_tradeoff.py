@@ -1,0 +1,70 @@
+"""Speed-accuracy tables and the ablation table, on hand-made records; open-loop
+trajectory error between backends."""
+import numpy as np
+import pytest
+
+from bench import ablation, tradeoff
+
+
+def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None):
+    base = {"loss": "chamfer", "truncation": 10, "alpha": 1.0, "num_envs": 32}
+    store.write({"run_id": rid, "task": "hopper", "method": "ild", "seed": seed,
+                 "status": "ok", "final_normalized": norm, "final_return": 100 * norm,
+                 "config": {**base, **config}, "num_demos": num_demos,
+                 "budget": {"seconds": secs}, "curve": curve or [],
+                 "train_metrics": {"train/updates": 50}, "env_steps": 1000, "train_s": secs})
+
+
+def test_ablation_table_directions_against_the_paper(store):
+    _ild(store, "b0", 0, 0.80, {})
+    _ild(store, "b1", 1, 0.90, {})
+    _ild(store, "l2", 0, 0.50, {"loss": "l2"})          # paper: l2 < chamfer on hopper
+    _ild(store, "t1", 0, 0.95, {"truncation": 1})       # paper: trunc1 < trunc10
+    _ild(store, "d16", 0, 0.85, {}, num_demos=16)
+    df = ablation.table(store, "hopper").set_index("setting")
+    assert df.loc["base", "normalized"] == pytest.approx(0.85) and df.loc["base", "seeds"] == 2
+    assert df.loc["l2", "ours_vs_base"] == "down" and df.loc["l2", "paper_vs_base"] == "down"
+    assert df.loc["l2", "agrees"] == "yes" and df.loc["l2", "paper_return"] == 173.39
+    assert df.loc["trunc1", "ours_vs_base"] == "up" and df.loc["trunc1", "agrees"] == "no"
+    assert df.loc["16demos", "ours_vs_base"] == "same" and df.loc["16demos", "agrees"] == "-"
+    with pytest.raises(ValueError, match="ildbench ablate --task reacher"):
+        ablation.table(store, "reacher")
+    reqs = ablation.requests("hopper", 180, seeds=(0,))
+    assert len(reqs) == len(ablation.SETTINGS)
+    assert {r.num_demos for r in reqs} == {1, 16}
+    assert {r.overrides.get("truncation") for r in reqs} == {None, 1, 30, 100}
+
+
+def test_budget_table_reads_anytime_curves(store):
+    curve = [{"train_s": 50, "normalized": 0.2}, {"train_s": 200, "normalized": 0.6},
+             {"train_s": 500, "normalized": 0.9}]
+    _ild(store, "a", 0, 0.9, {}, secs=600, curve=curve)
+    _ild(store, "b", 1, 0.5, {}, secs=120, curve=[{"train_s": 100, "normalized": 0.5}])
+    df = tradeoff.budget_table(store, "hopper").set_index("minutes")
+    assert df.loc[1, "mean"] == pytest.approx((0.2 + 0.0) / 2)   # b had no eval before 60 s
+    assert df.loc[2, "mean"] == pytest.approx((0.2 + 0.5) / 2)
+    assert df.loc[5, "mean"] == pytest.approx(0.6) and df.loc[5, "count"] == 1
+    assert df.loc[10, "mean"] == pytest.approx(0.9)
+
+
+def test_ild_grid_table(store):
+    _ild(store, "a", 0, 0.7, {"truncation": 1, "num_envs": 8})
+    df = tradeoff.ild_table(store, "hopper")
+    assert df.iloc[0].truncation == 1 and df.iloc[0].batch == 8
+    assert df.iloc[0].env_steps_per_s == pytest.approx(1000 / 180)
+    reqs = tradeoff.ild_requests("hopper", 60)
+    assert len(reqs) == 9 and {r.overrides["num_envs"] for r in reqs} == {8, 32, 128}
+
+
+def test_open_loop_error_zero_for_the_same_backend_and_finite_across():
+    acts, keys = tradeoff.probe_actions("inverted_pendulum", batch=2, horizon=20)
+    assert acts.shape == (2, 20, 1)
+    ref = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "generalized"),
+                                       acts, keys)
+    again = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "generalized"),
+                                         acts, keys)
+    np.testing.assert_array_equal(ref, again)
+    pos = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "positional"),
+                                       acts, keys)
+    err = np.linalg.norm(pos - ref, axis=-1)
+    assert np.isfinite(err).all() and err[:, 0].max() < 1e-5 and err.max() > 0
