@@ -102,9 +102,5 @@ def table(store: Store, task: str, seconds: float | None = None) -> pd.DataFrame
 
 
 def write(df: pd.DataFrame, task: str, out_dir: str) -> list[str]:
-    os.makedirs(out_dir, exist_ok=True)
-    base = os.path.join(out_dir, f"ablation_{task}")
-    df.to_csv(base + ".csv", index=False)
-    with open(base + ".md", "w") as f:
-        f.write(df.to_markdown(index=False, floatfmt=".3f") + "\n")
-    return [base + ".csv", base + ".md"]
+    from bench.report import write_table
+    return write_table(df, os.path.join(out_dir, f"ablation_{task}"), floatfmt=".3f")

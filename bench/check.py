@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.budget import Budget
 from bench.evaluator import EvalConfig
-from bench.runner import RunRequest, execute, prepare
+from bench.runner import RunRequest, prepare
 from bench.store import Store, write_json_atomic
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -77,13 +77,12 @@ def requests(suite: Sequence[Canary] = SUITE, seeds: Sequence[int] = SEEDS,
 def run_suite(reqs: Sequence[RunRequest], store: Store,
               log: Callable[[str], None] = lambda s: None) -> dict[str, list[float | None]]:
     """{canary key: [normalized score per seed]} (None for a failed run)."""
-    prepared = [prepare(r) for r in reqs]
+    from bench.sweep import run_local
     scores: dict[str, list[float | None]] = {}
-    for p in prepared:
-        rec, _ = execute(p, store, log=log)
-        key = f"{p.request.method}/{p.request.task}"
-        ok = rec["status"] == "ok" and rec.get("final_normalized") is not None
-        scores.setdefault(key, []).append(float(rec["final_normalized"]) if ok else None)
+    for o in run_local([prepare(r) for r in reqs], store, log=log, isolate=False):
+        ok = o.status == "ok" and o.normalized is not None
+        scores.setdefault(f"{o.method}/{o.task}", []).append(float(o.normalized) if ok
+                                                              else None)
     return scores
 
 

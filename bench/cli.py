@@ -164,12 +164,10 @@ def cmd_quick(args):
 
 
 def cmd_leaderboard(args):
-    from bench import leaderboard as lb
     from bench.report import write_report
     from bench.store import Store
-    store = Store(args.store)
-    print(lb.to_markdown(lb.leaderboard(store)))
-    paths = write_report(store, args.out)
+    paths = write_report(Store(args.store), args.out)
+    print(open(paths[0]).read())  # leaderboard.md
     agg = os.path.join(args.out, "aggregates.md")
     if os.path.exists(agg):
         print(open(agg).read())
@@ -211,15 +209,9 @@ def cmd_tradeoff(args):
         paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
     else:
         from bench.budget import parse_seconds
-        from bench.runner import enable_compilation_cache, prepare
-        from bench.sweep import run_local
-        enable_compilation_cache(args.jax_cache)
-        store = Store(args.store)
-        reqs = tr.ild_requests(args.task, parse_seconds(args.budget or "3m"),
-                               seeds=range(args.seeds))
-        run_local([prepare(r) for r in reqs], store, log=lambda s: print(s, flush=True),
-                  jax_cache=args.jax_cache)
-        df = tr.ild_table(store, args.task)
+        _run_all(args, tr.ild_requests(args.task, parse_seconds(args.budget or "3m"),
+                                       seeds=range(args.seeds)))
+        df = tr.ild_table(Store(args.store), args.task)
         paths = tr._save(df, args.task, "ild", out) + [tr.plot_ild(df, args.task, out)]
     print(open(paths[1]).read())
     print("written: " + ", ".join(paths))
@@ -229,18 +221,12 @@ def cmd_tradeoff(args):
 def cmd_ablate(args):
     from bench import ablation
     from bench.budget import parse_seconds
-    from bench.runner import enable_compilation_cache, prepare
     from bench.store import Store
-    from bench.sweep import run_local
     seconds = parse_seconds(args.budget)
-    store = Store(args.store)
     if not args.table_only:
-        reqs = ablation.requests(args.task, seconds, seeds=range(args.seeds),
-                                 names=args.settings)
-        prepared = [prepare(r) for r in reqs]
-        enable_compilation_cache(args.jax_cache)
-        run_local(prepared, store, log=lambda s: print(s, flush=True), jax_cache=args.jax_cache)
-    df = ablation.table(store, args.task, seconds)
+        _run_all(args, ablation.requests(args.task, seconds, seeds=range(args.seeds),
+                                         names=args.settings))
+    df = ablation.table(Store(args.store), args.task, seconds)
     paths = ablation.write(df, args.task, args.out)
     print(open(paths[1]).read())
     print("written: " + ", ".join(paths))
@@ -355,7 +341,7 @@ def build_parser():
     p.add_argument("--seeds", type=int, default=1, help="ild: seeds per cell")
     p.add_argument("--out", default=None, help="default results/tradeoff")
     p.add_argument("--jax-cache", default=None)
-    p.set_defaults(fn=cmd_tradeoff)
+    p.set_defaults(fn=cmd_tradeoff, force=False)  # for _run_all (the ILD grid)
     p = sub.add_parser("ablate", help="the paper's ILD ablations (Table 3, Table 7)")
     p.add_argument("--task", required=True)
     p.add_argument("--budget", default="3m")
@@ -364,7 +350,7 @@ def build_parser():
     p.add_argument("--table-only", action="store_true", help="tabulate finished runs only")
     p.add_argument("--out", default="results/ablation")
     p.add_argument("--jax-cache", default=None)
-    p.set_defaults(fn=cmd_ablate)
+    p.set_defaults(fn=cmd_ablate, force=False)  # for _run_all
     p = sub.add_parser("plot-robustness", help="normalized score vs perturbation magnitude")
     p.add_argument("--task", required=True)
     p.add_argument("--out", default="results")

@@ -109,10 +109,19 @@ def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory
 
 @functools.lru_cache(maxsize=16)
 def _batched_env_fns(env):
-    reset = jax.jit(jax.vmap(env.reset))
-    step = jax.jit(jax.vmap(lambda s, a, alive, ret, n: _step_masked(env, s, a, alive, ret, n)))
-    first = jax.jit(lambda s: env_matched_state(env, jax.tree_util.tree_map(lambda x: x[0], s)))
-    return reset, step, first
+    """Batched reset and masked step, each also returning the first episode's matched state
+    (one device call per step)."""
+    def first(s):
+        return env_matched_state(env, jax.tree_util.tree_map(lambda x: x[0], s))
+
+    def reset(keys):
+        s = jax.vmap(env.reset)(keys)
+        return s, first(s)
+
+    def step(s, a, alive, ret, n):
+        out = jax.vmap(lambda *xs: _step_masked(env, *xs))(s, a, alive, ret, n)
+        return out + (first(out[0]),)
+    return jax.jit(reset), jax.jit(step)
 
 
 def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
@@ -128,18 +137,19 @@ def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
     if policy.kind != "host":
         raise ValueError(f"unknown policy kind {policy.kind!r}; use 'jax', 'host' or 'jax_state'")
     # Host policy (torch/numpy): one batched jitted env call per step, one conversion each way.
-    reset, step, first = _batched_env_fns(task.env)
+    reset, step = _batched_env_fns(task.env)
     reset_keys = jax.vmap(lambda k: jax.random.split(k)[0])(keys)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).tolist())
-    s = reset(reset_keys)
+    s, s0 = reset(reset_keys)
     alive = jnp.ones(num_episodes)
     ret = jnp.zeros(num_episodes)
     length = jnp.zeros(num_episodes)
-    states = [first(s)]
+    states = [s0]
     for _ in range(task.episode_length):
         a = policy.act(policy.params, np.asarray(s.obs), rng, deterministic)
-        s, alive, ret, length = step(s, jnp.asarray(a, jnp.float32), alive, ret, length)
-        states.append(first(s))
+        s, alive, ret, length, s_first = step(s, jnp.asarray(a, jnp.float32), alive, ret,
+                                              length)
+        states.append(s_first)
     return (np.asarray(ret, np.float64), np.asarray(length, np.int64),
             np.asarray(jnp.stack(states), np.float32))
 

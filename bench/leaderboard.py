@@ -53,17 +53,19 @@ def records_frame(store: Store) -> pd.DataFrame:
             norm = 0.0
         horizon = (r.get("budget") or {}).get("seconds")
         curve = r.get("curve") or []
-        rows.append({"auc": curves.auc(curve, horizon) if horizon else None,
-                     "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
-                     "reference": bool(r.get("reference_method")),"task": r["task"], "method": r["method"], "variant": variant(r),
-                     "seed": r["seed"],
-                     "status": r["status"], "normalized": norm, "return": r.get("final_return"),
-                     "transfer": _transfer(r),
+        rows.append({"task": r["task"], "method": r["method"], "variant": variant(r),
+                     "seed": r["seed"], "status": r["status"], "normalized": norm,
+                     "return": r.get("final_return"), "transfer": _transfer(r),
                      "uses": Uses(**r["uses"]).describe(),
-                     "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s")})
+                     "reference": bool(r.get("reference_method")),
+                     "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s"),
+                     "auc": curves.auc(curve, horizon) if horizon else None,
+                     "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
+                     "curve": curve, "horizon": horizon})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
-                                       "reference", "budget", "train_s", "auc", "t50", "t90"])
+                                       "reference", "budget", "train_s", "auc", "t50", "t90",
+                                       "curve", "horizon"])
 
 
 def _mean(col: pd.Series) -> float:
@@ -72,7 +74,11 @@ def _mean(col: pd.Series) -> float:
 
 
 def leaderboard(store: Store) -> pd.DataFrame:
-    df = records_frame(store)
+    return board(records_frame(store))
+
+
+def board(df: pd.DataFrame) -> pd.DataFrame:
+    """The leaderboard of a records_frame."""
     if df.empty:
         return pd.DataFrame(columns=COLUMNS)
     out = []

@@ -13,6 +13,16 @@ from bench.perturb import FAMILIES  # noqa: E402
 from bench.store import Store  # noqa: E402
 
 
+def save_figure(fig, out_dir: str, name: str) -> str:
+    """Lay out, write <out_dir>/<name> (PNG, 100 dpi) and close the figure."""
+    fig.tight_layout()
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, name)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def robustness_frame(store: Store, task: str) -> pd.DataFrame:
     """One row per (method, seed, family, magnitude) from runs' transfer entries."""
     rows = []
@@ -50,9 +60,4 @@ def robustness_plot(store: Store, task: str, out_dir: str) -> str:
     axes[0][0].set_ylabel("normalized score")
     axes[0][-1].legend(fontsize=8)
     fig.suptitle(f"{task}: robustness (1.0 = expert under the same perturbation)")
-    fig.tight_layout()
-    os.makedirs(out_dir, exist_ok=True)
-    path = os.path.join(out_dir, f"robustness_{task}.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out_dir, f"robustness_{task}.png")

@@ -47,7 +47,7 @@ def viewer_html(task_name: str, matched: np.ndarray, height: int = 360) -> str:
 def pick_record(store: Store, task: str, method: str, seed: int | None = None) -> dict:
     recs = [r for r in store.records() if r["task"] == task and r["method"] == method
             and r.get("status") == "ok" and (seed is None or r["seed"] == seed)
-            and store.trajectory(r["run_id"]) is not None]
+            and os.path.exists(store.trajectory_path(r["run_id"]))]
     if not recs:
         raise ValueError(f"no finished {method!r} run on {task!r}"
                          f"{'' if seed is None else f' with seed {seed}'} with a stored "

@@ -23,13 +23,19 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from bench import curves, leaderboard as lb, stats  # noqa: E402
+from bench.plots import save_figure  # noqa: E402
 from bench.store import Store  # noqa: E402
 
 GRID_POINTS = 60
 
 
-def _scored_records(store: Store) -> list[dict]:
-    return [r for r in store.records() if r.get("status") in ("ok", "diverged")]
+def write_table(df: pd.DataFrame, base: str, floatfmt: str = ".4g") -> list[str]:
+    """<base>.csv and <base>.md (markdown) of one table; returns both paths."""
+    os.makedirs(os.path.dirname(os.path.abspath(base)), exist_ok=True)
+    df.to_csv(base + ".csv", index=False)
+    with open(base + ".md", "w") as f:
+        f.write(df.to_markdown(index=False, floatfmt=floatfmt) + "\n")
+    return [base + ".csv", base + ".md"]
 
 
 def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
@@ -98,37 +104,29 @@ def aggregates_markdown(agg: pd.DataFrame, imp: pd.DataFrame, notes: list[str]) 
     return "\n".join(out) + "\n"
 
 
-def _curve_band(records: list[dict], grid: np.ndarray) -> tuple[np.ndarray, ...]:
-    vals = np.stack([curves.value_at(r.get("curve"), grid) for r in records])  # (runs, grid)
+def _curve_band(runs: list[list[dict]], grid: np.ndarray) -> tuple[np.ndarray, ...]:
+    vals = np.stack([curves.value_at(c, grid) for c in runs])  # (runs, grid)
     mean = vals.mean(0)
-    if len(records) == 1:
+    if len(runs) == 1:
         return mean, mean, mean
     ci = np.array([stats.bootstrap_ci(vals[:, j], reps=500) for j in range(grid.size)])
     return mean, ci[:, 0], ci[:, 1]
 
 
-def curve_plots(store: Store, frame: pd.DataFrame, out_dir: str) -> list[str]:
+def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
+    """Anytime curves of the main variant per (task, method), runs with a wall-clock budget."""
     chosen = main_variants(frame)
-    keep = set(zip(chosen.task, chosen.method, chosen.variant, chosen.seed))
-    by_cell: dict[tuple[str, str], list[dict]] = {}
-    for r in _scored_records(store):
-        if (r["task"], r["method"], lb.variant(r), r["seed"]) in keep and \
-                (r.get("budget") or {}).get("seconds"):
-            by_cell.setdefault((r["task"], r["method"]), []).append(r)
+    chosen = chosen[chosen.horizon.notna()]
     paths = []
-    os.makedirs(out_dir, exist_ok=True)
     frac = np.linspace(0, 1, GRID_POINTS)
     agg: dict[str, list[np.ndarray]] = {}
-    for task in sorted({t for t, _ in by_cell}):
+    for task, per_task in chosen.groupby("task"):
         fig, ax = plt.subplots(figsize=(5, 3.4))
-        for (t, method), recs in sorted(by_cell.items()):
-            if t != task:
-                continue
-            horizon = max(r["budget"]["seconds"] for r in recs)
-            grid = frac * horizon
-            mean, lo, hi = _curve_band(recs, grid)
-            ref = " (ref)" if recs[0].get("reference_method") else ""
-            ax.plot(grid, mean, label=f"{method}{ref} (n={len(recs)})",
+        for method, g in per_task.groupby("method"):
+            grid = frac * g.horizon.max()
+            mean, lo, hi = _curve_band(list(g.curve), grid)
+            ref = " (ref)" if g.reference.any() else ""
+            ax.plot(grid, mean, label=f"{method}{ref} (n={len(g)})",
                     ls="--" if ref else "-")
             ax.fill_between(grid, lo, hi, alpha=0.2)
             if not ref:
@@ -138,11 +136,7 @@ def curve_plots(store: Store, frame: pd.DataFrame, out_dir: str) -> list[str]:
         ax.set_ylabel("normalized score")
         ax.set_title(f"{task}: anytime score (1 = expert, 0 = random)")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = os.path.join(out_dir, f"curves_{task}.png")
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, out_dir, f"curves_{task}.png"))
     if agg:
         fig, ax = plt.subplots(figsize=(5, 3.4))
         for method, per_task in sorted(agg.items()):
@@ -152,19 +146,14 @@ def curve_plots(store: Store, frame: pd.DataFrame, out_dir: str) -> list[str]:
         ax.set_ylabel("mean normalized score over tasks")
         ax.set_title("aggregate anytime score (imitation methods)")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = os.path.join(out_dir, "curves_aggregate.png")
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, out_dir, "curves_aggregate.png"))
     return paths
 
 
 def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
-    board = lb.leaderboard(store)
-    md, csv = lb.write(board, out_dir)
+    """Every report file from one read of the store; leaderboard.md comes first."""
     frame = lb.records_frame(store)
-    paths = [md, csv]
+    paths = list(lb.write(lb.board(frame), out_dir))
     if not frame.empty:
         agg, imp, notes = aggregates(frame, reps=reps)
         p = os.path.join(out_dir, "aggregates.md")
@@ -175,5 +164,5 @@ def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
             p = os.path.join(out_dir, "aggregates.csv")
             pd.concat([agg, imp], ignore_index=True).to_csv(p, index=False)
             paths.append(p)
-        paths += curve_plots(store, frame, out_dir)
+        paths += curve_plots(frame, out_dir)
     return paths

@@ -65,8 +65,9 @@ def machine() -> dict:
 
 
 def resources() -> dict:
-    """What this run may use: CPUs in its affinity set (taskset / cgroup pinning) and
-    accelerators JAX sees (under Ray: the CPUs the cell reserved). Recorded in every record: runs compare only at equal resources."""
+    """What this run may use: CPUs in its affinity set (taskset / cgroup pinning; under Ray,
+    the CPUs the cell reserved) and accelerators JAX sees. Recorded in every record: runs
+    compare only at equal resources."""
     if os.environ.get("ILDBENCH_CPUS_PER_RUN"):  # set by an executor that reserves CPUs (Ray)
         cpus = int(float(os.environ["ILDBENCH_CPUS_PER_RUN"]))
     else:

@@ -11,21 +11,22 @@ import json
 import os
 import tempfile
 import warnings
-from typing import Iterator
+from typing import IO, Callable, Iterator
 
 DEFAULT_ROOT = os.environ.get("ILDBENCH_STORE", "runs")
 FINISHED = ("ok", "diverged")
 
 
-def write_json_atomic(path: str, obj) -> None:
-    """Write JSON so that readers see the old file or the new one, never a partial one:
-    a temp file in the same directory, fsync, os.replace."""
+def write_atomic(path: str, write: Callable[[IO], None], binary: bool = False) -> None:
+    """Write a file so that readers see the old file or the new one, never a partial one:
+    `write(f)` into a temp file in the same directory, fsync, os.replace."""
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".json")
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-",
+                               suffix=os.path.splitext(path)[1])
     try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=True, allow_nan=True)
+        with os.fdopen(fd, "wb" if binary else "w") as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -33,6 +34,10 @@ def write_json_atomic(path: str, obj) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_json_atomic(path: str, obj) -> None:
+    write_atomic(path, lambda f: json.dump(obj, f, indent=1, sort_keys=True, allow_nan=True))
 
 
 class Store:
@@ -66,16 +71,8 @@ class Store:
         (for renders); written atomically beside the record."""
         import numpy as np
         path = self.trajectory_path(run_id)
-        os.makedirs(self.root, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".npz")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, states=np.asarray(states, np.float32))
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        write_atomic(path, lambda f: np.savez_compressed(
+            f, states=np.asarray(states, np.float32)), binary=True)
         return path
 
     def trajectory(self, run_id: str):

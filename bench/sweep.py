@@ -99,15 +99,23 @@ CRASH_HOOK = "ILDBENCH_TEST_CRASH_CELL"
 """Test hook: a child whose cell is '<method>/<task>/<seed>' exits hard before running."""
 
 
+def _cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
+          log: Callable[[str], None]) -> tuple[Prepared, dict, bool]:
+    """One cell in a fresh process (a spawned child or a Ray worker): re-validated there
+    (the process imports the method's code itself), run, record written by that process."""
+    from bench.runner import enable_compilation_cache
+    enable_compilation_cache(jax_cache)
+    p = prepare(request)
+    rec, skipped = execute(p, Store(store_root), force=force, log=log)
+    return p, rec, skipped
+
+
 def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None) -> None:
     import os
     r = request
     if os.environ.get(CRASH_HOOK) == f"{r.method}/{r.task}/{r.seed}":
         os._exit(70)
-    from bench.runner import enable_compilation_cache
-    enable_compilation_cache(jax_cache)
-    execute(prepare(request), Store(store_root), force=force,
-            log=lambda s: print(s, flush=True))
+    _cell(request, store_root, force, jax_cache, log=lambda s: print(s, flush=True))
 
 
 def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
@@ -156,16 +164,11 @@ def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
 
 def _ray_cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
               cpus: float) -> dict:
-    """One cell inside a Ray worker: re-validated there (the worker imports the method's
-    code itself), run, record written by the worker."""
+    """A cell in a Ray worker, which records the CPUs the cell reserved."""
     import os
-
-    from bench.runner import enable_compilation_cache
     os.environ["ILDBENCH_CPUS_PER_RUN"] = str(cpus)
-    enable_compilation_cache(jax_cache)
     t0 = time.perf_counter()
-    p = prepare(request)
-    rec, skipped = execute(p, Store(store_root), force=force, log=lambda s: None)
+    p, rec, skipped = _cell(request, store_root, force, jax_cache, log=lambda s: None)
     return {"run_id": p.run_id, "status": rec["status"],
             "normalized": rec.get("final_normalized"), "skipped": skipped,
             "wall_s": time.perf_counter() - t0}

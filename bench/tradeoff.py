@@ -18,7 +18,6 @@ the budget, so a run stopped by a budget t is the same run as a longer one read 
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 
 import matplotlib
@@ -31,20 +30,17 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from bench import curves  # noqa: E402
+from bench.plots import save_figure  # noqa: E402
+from bench.report import write_table  # noqa: E402
 from bench.store import Store  # noqa: E402
-from tasks import TASKS, get_spec  # noqa: E402
-from tasks.core import Task, build_env  # noqa: E402
+from tasks import TASKS, get_spec, make_task  # noqa: E402
+from tasks.core import Task, task_with_backend  # noqa: E402
 
 BACKENDS = ("generalized", "positional", "spring")
 REFERENCE_BACKEND = "generalized"
 BUDGET_MINUTES = (1, 2, 5, 10)
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OUT = os.path.join(_REPO, "results", "tradeoff")
-
-
-def _task(name: str, backend: str) -> Task:
-    spec = dataclasses.replace(get_spec(name), backend=backend)
-    return Task(spec=spec, env=build_env(spec))
 
 
 def probe_actions(name: str, batch: int, horizon: int) -> tuple[jax.Array, jax.Array]:
@@ -56,7 +52,7 @@ def probe_actions(name: str, batch: int, horizon: int) -> tuple[jax.Array, jax.A
         with np.load(spec.demo_path) as z:
             acts, keys = z["actions"][:batch, :horizon], z["init_keys"][:batch]
         return jnp.asarray(acts), jnp.asarray(keys, jnp.uint32)
-    act = _task(name, spec.backend).action_size
+    act = make_task(name).action_size
     k1, k2 = jax.random.split(jax.random.PRNGKey(7))
     phase = jax.random.uniform(k1, (batch, 1, act), maxval=2 * np.pi)
     freq = jax.random.uniform(k2, (batch, 1, act), minval=0.05, maxval=0.3)
@@ -90,7 +86,7 @@ def backends(name: str, batch: int = 16, horizon: int = 128, repeats: int = 3,
         row = {"task": name, "backend": backend, "registry_default": get_spec(name).backend
                == backend}
         try:
-            task = _task(name, backend)
+            task = task_with_backend(name, backend)
             pos = open_loop_positions(task, actions, keys)
             if ref_pos is None:
                 ref_pos = pos
@@ -155,12 +151,7 @@ def ild_table(store: Store, task: str) -> pd.DataFrame:
 
 
 def _save(df: pd.DataFrame, task: str, part: str, out: str) -> list[str]:
-    os.makedirs(out, exist_ok=True)
-    base = os.path.join(out, f"{task}_{part}")
-    df.to_csv(base + ".csv", index=False)
-    with open(base + ".md", "w") as f:
-        f.write(df.to_markdown(index=False, floatfmt=".4g") + "\n")
-    return [base + ".csv", base + ".md"]
+    return write_table(df, os.path.join(out, f"{task}_{part}"))
 
 
 def plot_backends(df: pd.DataFrame, task: str, out: str) -> str:
@@ -175,11 +166,7 @@ def plot_backends(df: pd.DataFrame, task: str, out: str) -> str:
     ax.set_xlabel("env-steps/s (o forward, s gradient)")
     ax.set_ylabel(f"mean body position error vs {REFERENCE_BACKEND} (m)")
     ax.set_title(f"{task}: backend speed vs accuracy")
-    fig.tight_layout()
-    path = os.path.join(out, f"{task}_backends.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out, f"{task}_backends.png")
 
 
 def plot_budget(df: pd.DataFrame, task: str, out: str) -> str:
@@ -193,11 +180,7 @@ def plot_budget(df: pd.DataFrame, task: str, out: str) -> str:
     ax.set_ylabel("normalized score")
     ax.set_title(f"{task}: score vs budget")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = os.path.join(out, f"{task}_budget.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out, f"{task}_budget.png")
 
 
 def plot_ild(df: pd.DataFrame, task: str, out: str) -> str:
@@ -212,11 +195,7 @@ def plot_ild(df: pd.DataFrame, task: str, out: str) -> str:
     ax.set_ylabel("truncation length")
     ax.set_title(f"{task}: ILD final score at {df.budget_s.iloc[0]:g} s")
     fig.colorbar(im)
-    fig.tight_layout()
-    path = os.path.join(out, f"{task}_ild.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out, f"{task}_ild.png")
 
 
 def known_tasks() -> list[str]:

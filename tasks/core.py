@@ -119,6 +119,13 @@ class Task:
         return 13 * int(self.env.sys.num_links())  # brax_matched_state's layout
 
 
+def task_with_backend(name: str, backend: str) -> Task:
+    """A fresh task `name` on another physics backend (for backend measurements; not
+    cached: the registry's pin stays what make_task returns)."""
+    spec = dataclasses.replace(get_spec(name), backend=backend)
+    return Task(spec=spec, env=build_env(spec))
+
+
 @functools.lru_cache(maxsize=None)
 def make_task(name: str) -> Task:
     """Build (once per process) the task registered under `name`."""

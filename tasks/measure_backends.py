@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import os
 import time
 
@@ -20,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tasks import TASKS
-from tasks.core import Task, build_env
+from tasks import TASKS, get_spec
+from tasks.core import Task, task_with_backend
 
 CANDIDATES = ("generalized", "positional", "spring")
 FIELDS = ["task", "backend", "batch", "horizon", "fwd_steps_per_s", "grad_steps_per_s",
@@ -93,14 +92,13 @@ def main(argv=None):
         if new:
             w.writeheader()
         for name in a.tasks:
-            base = TASKS[name]
+            get_spec(name)  # an unknown task stops here, not as an error row
             for backend in a.backends:
                 if (name, backend) in done:
                     continue
                 row = dict(task=name, backend=backend, batch=a.batch, horizon=a.horizon)
                 try:
-                    spec = dataclasses.replace(base, backend=backend)
-                    task = Task(spec=spec, env=build_env(spec))
+                    task = task_with_backend(name, backend)
                     row.update(measure(task, a.batch, a.horizon))
                 except Exception as e:  # an unsupported backend is a row, not a crash
                     row["error"] = f"{type(e).__name__}: {e}"[:200]

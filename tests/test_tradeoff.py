@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bench import ablation, tradeoff
+from tasks.core import task_with_backend
 
 
 def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None):
@@ -59,12 +60,12 @@ def test_ild_grid_table(store):
 def test_open_loop_error_zero_for_the_same_backend_and_finite_across():
     acts, keys = tradeoff.probe_actions("inverted_pendulum", batch=2, horizon=20)
     assert acts.shape == (2, 20, 1)
-    ref = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "generalized"),
+    ref = tradeoff.open_loop_positions(task_with_backend("inverted_pendulum", "generalized"),
                                        acts, keys)
-    again = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "generalized"),
+    again = tradeoff.open_loop_positions(task_with_backend("inverted_pendulum", "generalized"),
                                          acts, keys)
     np.testing.assert_array_equal(ref, again)
-    pos = tradeoff.open_loop_positions(tradeoff._task("inverted_pendulum", "positional"),
+    pos = tradeoff.open_loop_positions(task_with_backend("inverted_pendulum", "positional"),
                                        acts, keys)
     err = np.linalg.norm(pos - ref, axis=-1)
     assert np.isfinite(err).all() and err[:, 0].max() < 1e-5 and err.max() > 0
