@@ -8,7 +8,7 @@
     ildbench leaderboard                table, aggregates and curves from the store
     ildbench check [--update]           CI regression gate (canary suite vs reference)
     ildbench render --task T --method M HTML: expert demo next to the method's final policy
-    ildbench tradeoff backends|budget|ild --task T   speed-accuracy tables and plots
+    ildbench tradeoff backends|budget|ild|substeps --task T   speed-accuracy tables, plots
     ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench expert train --task T      train a PPO expert (progress, time left)
@@ -204,6 +204,11 @@ def cmd_tradeoff(args):
     if args.part == "backends":
         df = tr.backends(args.task, batch=args.batch)
         paths = tr._save(df, args.task, "backends", out) + [tr.plot_backends(df, args.task, out)]
+    elif args.part == "substeps":
+        if args.task != "cloth":
+            raise SystemExit("tradeoff substeps measures the cloth simulator: use --task cloth")
+        df = tr.cloth_substeps()
+        paths = tr._save(df, args.task, "substeps", out)
     elif args.part == "budget":
         df = tr.budget_table(Store(args.store), args.task)
         paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
@@ -334,7 +339,7 @@ def build_parser():
     p.add_argument("--out", default="results")
     p.set_defaults(fn=cmd_render)
     p = sub.add_parser("tradeoff", help="speed-accuracy trade-offs: backends, budget, ILD")
-    p.add_argument("part", choices=["backends", "budget", "ild"])
+    p.add_argument("part", choices=["backends", "budget", "ild", "substeps"])
     p.add_argument("--task", required=True)
     p.add_argument("--batch", type=int, default=16, help="backends: parallel rollouts")
     p.add_argument("--budget", default=None, help="ild: training budget per cell (default 3m)")

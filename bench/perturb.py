@@ -9,6 +9,12 @@
     mass          body masses x (1 + m)         (brax: link masses; pointmass: the mass)
     friction      contact friction x (1 + m)    (brax: geom friction; tasks without contact
                                                  are unaffected)
+    test_noise    the task's own test dynamics at m x their stated size (cloth: the
+                  original's uniform +/-0.05 per-step action noise and fixed bias up to
+                  +/-0.2, so m = 1 is the paper's test); only tasks that declare it
+
+A task may name its own families and default magnitudes (TaskSpec.transfer, e.g. cloth:
+test_noise = 1 only); otherwise DEFAULTS below apply.
 
 The noise of a perturbed episode comes from its own key (derived from the episode's key),
 so an evaluation is reproducible, and the training methods never see these variants.
@@ -29,14 +35,15 @@ from brax.envs.base import State, Wrapper
 from tasks.core import Task, build_env
 
 FAMILIES = ("init_noise", "action_noise", "action_bias", "obs_noise", "actuator", "mass",
-            "friction")
+            "friction", "test_noise")
 # Default magnitudes (the "transfer" column) and the robustness-curve grid per family.
 DEFAULTS = {"init_noise": 0.1, "action_noise": 0.3, "action_bias": 0.2, "obs_noise": 0.05,
             "actuator": -0.3, "mass": 0.3, "friction": -0.5}
+GENERIC = FAMILIES[:-1]  # what applies to every task (test_noise only where declared)
 GRID = {"init_noise": (0.0, 0.05, 0.1, 0.2), "action_noise": (0.0, 0.1, 0.3, 0.5),
         "action_bias": (0.0, 0.1, 0.2, 0.4), "obs_noise": (0.0, 0.02, 0.05, 0.1),
         "actuator": (0.0, -0.15, -0.3, -0.5), "mass": (0.0, 0.15, 0.3, 0.6),
-        "friction": (0.0, -0.25, -0.5, -0.75)}
+        "friction": (0.0, -0.25, -0.5, -0.75), "test_noise": (0.0, 0.5, 1.0, 2.0)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,7 +58,8 @@ class Perturbation:
         if self.family in ("actuator", "mass", "friction") and self.magnitude <= -1:
             raise ValueError(f"{self.family} magnitude must be > -1 (a scale of 1 + m), got "
                              f"{self.magnitude}")
-        if self.family in ("init_noise", "action_noise", "obs_noise") and self.magnitude < 0:
+        if self.family in ("init_noise", "action_noise", "obs_noise", "test_noise") and \
+                self.magnitude < 0:
             raise ValueError(f"{self.family} magnitude must be >= 0, got {self.magnitude}")
 
     @property
@@ -144,6 +152,12 @@ def inapplicable(task: Task, p: Perturbation) -> str | None:
     if p.magnitude == 0:
         return None
     inner = task.env.unwrapped
+    declared = task.spec.transfer
+    if declared is not None and p.family not in dict(declared):
+        return (f"task {task.name!r} declares its test dynamics as "
+                f"{', '.join(f for f, _ in declared)} (TaskSpec.transfer)")
+    if p.family == "test_noise" and declared is None:
+        return f"task {task.name!r} declares no test_noise dynamics"
     sys = getattr(inner, "sys", None)
     if p.family == "friction":
         if sys is None:
@@ -164,6 +178,9 @@ def inapplicable(task: Task, p: Perturbation) -> str | None:
 def perturbed_task(task: Task, p: Perturbation) -> Task:
     """The task with perturbed test dynamics (cached: one env object, so one compilation
     per evaluated policy)."""
+    if p.family == "test_noise":
+        env = build_env(task.spec, test_noise=p.magnitude)
+        return Task(spec=task.spec, env=_Perturbed(env, Perturbation("action_bias", 0.0)))
     if p.family in ("actuator", "mass", "friction"):
         env = _with_system(task, p)
         # Wrapped too, so every variant has the same state structure (keys in info).
@@ -171,9 +188,17 @@ def perturbed_task(task: Task, p: Perturbation) -> Task:
     return Task(spec=task.spec, env=_Perturbed(task.env, p))
 
 
-def default_set() -> list[Perturbation]:
-    return [Perturbation(f, DEFAULTS[f]) for f in FAMILIES]
+def default_set(task: Task | None = None) -> list[Perturbation]:
+    """The transfer column's perturbations: the task's declared ones, else every generic
+    family at its default magnitude."""
+    declared = None if task is None else task.spec.transfer
+    if declared is not None:
+        return [Perturbation(f, m) for f, m in declared]
+    return [Perturbation(f, DEFAULTS[f]) for f in GENERIC]
 
 
-def grid_set() -> list[Perturbation]:
-    return [Perturbation(f, m) for f in FAMILIES for m in GRID[f]]
+def grid_set(task: Task | None = None) -> list[Perturbation]:
+    """The robustness-curve grid over the task's families."""
+    declared = None if task is None else task.spec.transfer
+    fams = GENERIC if declared is None else [f for f, _ in declared]
+    return [Perturbation(f, m) for f in fams for m in GRID[f]]

@@ -233,7 +233,8 @@ def execute(p: Prepared, store: Store, force: bool = False,
         if req.eval.transfer or req.eval.robustness:
             from bench import perturb
             from bench.transfer import evaluate_transfer
-            todo = perturb.grid_set() if req.eval.robustness else perturb.default_set()
+            todo = (perturb.grid_set(task) if req.eval.robustness
+                        else perturb.default_set(task))
             log(f"  transfer: {len(todo)} perturbed evaluations")
             with ctx.clock.paused():  # harness work: its compiling is counted as 'eval'
                 transfer = evaluate_transfer(task, p.demo, result.policy, req.seed, req.eval,
@@ -260,7 +261,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         # The last report's metrics, updated with the final ones the method returned.
         "train_metrics": {**ctx.last_metrics, **({k: float(v) for k, v in
                                                   result.metrics.items()} if result else {})},
-        "transfer_normalized": default_summary(transfer),
+        "transfer_normalized": default_summary(transfer, task),
         "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},

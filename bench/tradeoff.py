@@ -9,6 +9,11 @@
                                                 whose budget covers it
     ildbench tradeoff ild --task T --budget 3m  ILD's truncation length x batch size grid:
                                                 final score, updates done, env-steps/s
+    ildbench tradeoff substeps --task cloth     the cloth's substeps per action (dt =
+                                                0.1 s / substeps): stable or not, trajectory
+                                                error of the expert's replay against 200
+                                                substeps, success, forward and gradient
+                                                env-steps/s
 
 Every part writes results/tradeoff/<task>_<part>.csv/.md and a PNG.
 
@@ -101,6 +106,54 @@ def backends(name: str, batch: int = 16, horizon: int = 128, repeats: int = 3,
         log(str(row))
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+CLOTH_SUBSTEPS = (34, 42, 50, 75, 100, 200)
+
+
+def cloth_substeps(substeps=CLOTH_SUBSTEPS, batch: int = 10, repeats: int = 2,
+                   log=print) -> pd.DataFrame:
+    """The cloth's integrator trade: fewer substeps (larger dt) are faster until dt crosses
+    the explicit stability limit. Error = mean particle distance over the 80 steps of the
+    expert's replay against the finest setting."""
+    import time
+
+    from tasks.cloth import sim
+    from tasks.cloth.env import ClothHang, expert_actions
+    acts = jnp.asarray(expert_actions())
+    finest = max(substeps)
+    limit = sim.stability_limit()
+    traj, rows = {}, []
+    for n in sorted(substeps, reverse=True):
+        env = ClothHang(dt=0.1 / n, substeps=n, check_stability=False)
+
+        def replay(a, env=env):
+            s = env.reset(jax.random.PRNGKey(0))
+            return jax.lax.scan(lambda s, a: (env.step(s, a), (s.pipeline_state["x"],
+                                                               s.reward)), s, a)[1]
+
+        def batch_loss(a, env=env):
+            s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
+            s = jax.lax.scan(lambda s, a: (jax.vmap(env.step)(s, jnp.broadcast_to(
+                a, (batch, 8))), None), s, a)[0]
+            return jnp.mean(s.obs ** 2)
+
+        x, rew = (np.asarray(v) for v in jax.jit(replay)(acts))
+        traj[n] = x
+        row = {"substeps": n, "dt_s": 0.1 / n, "stable": 0.1 / n < limit,
+               "max_strain": float(max(jax.vmap(sim.max_strain)(jnp.asarray(x)))),
+               "expert_success": float(rew[-1])}
+        for label, fn in (("fwd", jax.jit(batch_loss)), ("grad", jax.jit(jax.grad(batch_loss)))):
+            jax.block_until_ready(fn(acts))
+            t0 = time.perf_counter()
+            for _ in range(repeats):
+                jax.block_until_ready(fn(acts))
+            row[f"{label}_steps_per_s"] = batch * 80 * repeats / (time.perf_counter() - t0)
+        err = np.linalg.norm(x - traj[finest], axis=-1)
+        row.update({"err_mean_mm": 1e3 * float(err.mean()), "err_max_mm": 1e3 * float(err.max())})
+        log(str(row))
+        rows.append(row)
+    return pd.DataFrame(rows).sort_values("substeps").reset_index(drop=True)
 
 
 def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFrame:

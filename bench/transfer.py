@@ -37,6 +37,8 @@ def references(task: Task, demo: Demo, p: Perturbation) -> tuple[float, float]:
     """(R_expert, R_random) under perturbation p."""
     if p.magnitude == 0:
         return demo.expert_return, demo.random_return
+    if task.spec.success_score:  # the score is the success rate under any dynamics
+        return 1.0, 0.0
     from tasks.expert import REFERENCE_EPISODES, REFERENCE_SEED, expert_policy
     path = os.path.join(REF_DIR, f"{task.name}.json")
     cache = _load(path)
@@ -90,5 +92,5 @@ def default_summary(transfer: dict[str, dict], task: Task | None = None) -> floa
     grid also holds other magnitudes)."""
     if not transfer:
         return None
-    keys = {p.key for p in default_set()}
+    keys = {p.key for p in default_set(task)}
     return transfer_summary({k: v for k, v in transfer.items() if k in keys}, task)

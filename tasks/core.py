@@ -43,13 +43,17 @@ class Canonical(Wrapper):
         return self._fix(self.env.step(state, action))
 
 
-def build_env(spec: TaskSpec) -> Env:
-    return Canonical(_build_env(spec))
+def build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
+    """The task's environment; `test_noise` > 0 builds its declared test dynamics at that
+    magnitude (TaskSpec.transfer, e.g. the cloth's action noise and bias)."""
+    return Canonical(_build_env(spec, test_noise))
 
 
-def _build_env(spec: TaskSpec) -> Env:
+def _build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
     kind, _, name = spec.env.partition(":")
     kwargs = spec.kwargs()
+    if test_noise and name != "cloth":
+        raise ValueError(f"task {spec.name!r} has no test_noise dynamics")
     if kind == "brax":
         return brax_envs.get_environment(name, backend=spec.backend, **kwargs)
     if kind == "ildbench" and name == "pointmass":
@@ -58,6 +62,10 @@ def _build_env(spec: TaskSpec) -> Env:
     if kind == "ildbench" and name == "acrobot":
         from tasks.acrobot import Acrobot
         return Acrobot(backend=spec.backend, **kwargs)
+    if kind == "ildbench" and name == "cloth":
+        from tasks.cloth.env import ClothHang
+        from tasks.cloth.env import TEST_BIAS, TEST_NOISE
+        return ClothHang(noise=TEST_NOISE * test_noise, bias=TEST_BIAS * test_noise, **kwargs)
     raise ValueError(f"task {spec.name!r}: cannot build env {spec.env!r}")
 
 

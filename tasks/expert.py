@@ -58,6 +58,11 @@ PPO_CONFIGS: dict[str, dict] = {
 }
 
 
+_HANDMADE = {"pointmass": "analytic PD controller",
+             "cloth": "the original release's hand-crafted open-loop actions "
+                      "(lift 20, carry 40, lower 20 steps)"}
+
+
 def expert_paths(task: str) -> tuple[str, str]:
     base = os.path.join(DATA_DIR, f"{task}_expert")
     return base + ".msgpack", base + ".json"
@@ -78,7 +83,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
 
     if task_name not in PPO_CONFIGS:
         raise ValueError(f"no PPO expert recipe for task {task_name!r}; recipes exist for "
-                         f"{', '.join(sorted(PPO_CONFIGS))} (pointmass has an analytic expert)")
+                         f"{', '.join(sorted(PPO_CONFIGS))} (pointmass and cloth have hand-made experts)")
     task = make_task(task_name)
     cfg = dict(PPO_CONFIGS[task_name])
     if num_timesteps is not None:
@@ -116,6 +121,10 @@ def expert_policy(task_name: str):
 
     if task_name == "pointmass":
         return Policy(act=_pd_act, params=())
+    if task_name == "cloth":  # the original's hand-crafted open-loop expert
+        from tasks.cloth.env import expert_actions
+        return Policy(act=_open_loop_act, params=jnp.asarray(expert_actions()),
+                      init_memory=_step_zero)
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_networks
 
@@ -140,6 +149,15 @@ def _pd_act(params, obs, key, deterministic):
     return pd_expert(obs)
 
 
+def _open_loop_act(params, obs, key, deterministic, t):
+    """Action t of an open-loop table (the step counter is the policy's memory)."""
+    return params[jnp.minimum(t, params.shape[0] - 1)], t + 1
+
+
+def _step_zero(params, key):
+    return jnp.zeros((), jnp.int32)
+
+
 class _PPOAct:
     """Hashable wrapper so the evaluator's compile cache keys on one object per task."""
 
@@ -158,13 +176,20 @@ def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> 
         k_reset, k_act = jax.random.split(key)
         s0 = env.reset(k_reset)
 
-        def body(s, k):
-            a = jnp.clip(policy.act(policy.params, s.obs, k, deterministic), -1.0, 1.0)
+        def body(carry, k):
+            s, mem = carry
+            if policy.init_memory is None:
+                a = policy.act(policy.params, s.obs, k, deterministic)
+            else:
+                a, mem = policy.act(policy.params, s.obs, k, deterministic, mem)
+            a = jnp.clip(a, -1.0, 1.0)
             s2 = env.step(s, a)
-            return s2, (s.obs, task.matched_state(s), a, s2.reward, s2.done)
+            return (s2, mem), (s.obs, task.matched_state(s), a, s2.reward, s2.done)
 
-        sT, (obs, states, actions, rewards, dones) = jax.lax.scan(
-            body, s0, jax.random.split(k_act, T))
+        mem = (None if policy.init_memory is None
+               else policy.init_memory(policy.params, jax.random.fold_in(k_act, 1)))
+        (sT, _), (obs, states, actions, rewards, dones) = jax.lax.scan(
+            body, (s0, mem), jax.random.split(k_act, T))
         obs = jnp.concatenate([obs, sT.obs[None]])
         states = jnp.concatenate([states, task.matched_state(sT)[None]])
         return dict(obs=obs, states=states, actions=actions, rewards=rewards, dones=dones)
@@ -199,9 +224,11 @@ def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,
     r_expert = ev.evaluate(policy, REFERENCE_SEED).mean_return
     r_random = ev.evaluate(random_policy(task.action_size), REFERENCE_SEED).mean_return
     _, meta_path = expert_paths(task_name)
-    expert_meta = {"source": "analytic PD controller"} if task_name == "pointmass" else {
-        "source": "brax PPO", **{k: v for k, v in json.load(open(meta_path)).items()
-                                 if k in ("seed", "ppo", "wall_clock_s")}}
+    if task_name in _HANDMADE:
+        expert_meta = {"source": _HANDMADE[task_name]}
+    else:
+        expert_meta = {"source": "brax PPO", **{k: v for k, v in json.load(open(meta_path)).items()
+                                                if k in ("seed", "ppo", "wall_clock_s")}}
     demo = Demo(
         obs=r["obs"][order].astype(np.float32), states=r["states"][order].astype(np.float32),
         actions=r["actions"][order].astype(np.float32),

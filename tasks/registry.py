@@ -42,6 +42,12 @@ class TaskSpec:
     """Extra constructor arguments for the environment, as (key, value) pairs."""
     paper_expert_return: float | None = None
     """The paper's expert row (Table 2), for the README's ours-vs-paper table."""
+    transfer: tuple[tuple[str, float], ...] | None = None
+    """The test dynamics of the transfer column as (family, default magnitude) pairs
+    (bench/perturb.py); None: every generic family at its default magnitude."""
+    success_score: bool = False
+    """The return is a success indicator (0/1): the normalized score is the success rate,
+    with references 1 and 0 under every test dynamics (not re-measured per perturbation)."""
 
     @property
     def demo_path(self) -> str | None:
@@ -71,6 +77,11 @@ _TABLE: tuple[TaskSpec, ...] = (
              "brax ant obs (27)", _BRAX_MATCHED, paper_expert_return=624.0),
     TaskSpec("humanoid", "brax:humanoid", "spring",
              "brax humanoid obs (244)", _BRAX_MATCHED, paper_expert_return=933.0),
+    TaskSpec("cloth", "ildbench:cloth", "cloth",
+             "= matched state (1736)",
+             "per particle (x, y, z, vx, vy, vz) x 288, then gripper 0 and 1 (x, y, z, r)",
+             demo="cloth.npz", episode_length=80, transfer=(("test_noise", 1.0),),
+             success_score=True),
 )
 # fmt: on
 
