@@ -181,8 +181,8 @@ def test_analytic_gradient_matches_finite_differences_in_float64():
         w = jax.random.normal(jax.random.PRNGKey(0), (sim.N, 3), jnp.float64)
 
         def loss(a):
-            s = step(s0, sim.action_displacement(a[0]))
-            s = step(s, sim.action_displacement(a[1]))
+            s = step(s0, sim.action_displacement(a[0], p.substeps))
+            s = step(s, sim.action_displacement(a[1], p.substeps))
             return jnp.sum(w * s.x) + jnp.sum(s.v ** 2)
 
         a0 = jnp.asarray(np.random.default_rng(0).uniform(-0.5, 0.5, (2, 8)))

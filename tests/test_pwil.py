@@ -132,3 +132,16 @@ def test_prefill_puts_demo_transitions_with_reward_alpha():
     np.testing.assert_array_equal(buf.next_observations[:128, 1], obs[1:])
     assert np.all(buf.rewards[:150] == cfg.alpha)
     assert buf.dones[127].all() and buf.timeouts[127].all() and not buf.dones[126].any()
+
+
+def test_pwil_horizon_is_the_tasks_episode_length():
+    import types
+
+    from bench.plugins import build_config, get_method
+    train = importlib.import_module("methods.pwil.train").train
+    spec = get_method("pwil")
+    assert build_config(spec, "cloth", "cpu").horizon == 80
+    assert build_config(spec, "hopper", "cpu").horizon == 128
+    task = types.SimpleNamespace(name="cloth", episode_length=80)
+    with pytest.raises(ValueError, match="horizon T=128 .* episode length 80.*--set horizon=80"):
+        train(task, None, PWILConfig(horizon=128), None, 0)

@@ -12,11 +12,11 @@ PAPER_TASKS = {"ant", "hopper", "humanoid", "reacher", "walker2d", "swimmer",
                "inverted_pendulum", "acrobot"}
 
 
-def test_registry_holds_the_paper_tasks_and_pointmass():
-    assert PAPER_TASKS | {"pointmass"} <= set(TASKS)
+def test_registry_holds_the_paper_tasks_pointmass_and_cloth():
+    assert PAPER_TASKS | {"pointmass", "cloth"} <= set(TASKS)
     for spec in TASKS.values():
-        assert spec.episode_length == 128
-        assert spec.backend in ("generalized", "positional", "spring", "analytic")
+        assert spec.episode_length == (80 if spec.name == "cloth" else 128)
+        assert spec.backend in ("generalized", "positional", "spring", "analytic", "cloth")
 
 
 def test_reregistering_a_task_raises():

@@ -69,3 +69,16 @@ def test_open_loop_error_zero_for_the_same_backend_and_finite_across():
                                        acts, keys)
     err = np.linalg.norm(pos - ref, axis=-1)
     assert np.isfinite(err).all() and err[:, 0].max() < 1e-5 and err.max() > 0
+
+
+def test_cloth_substeps_trade_flags_the_unstable_setting_and_measures_error():
+    from bench.tradeoff import cloth_substeps
+    df = cloth_substeps(substeps=(34, 50, 60), batch=2, repeats=1, gradient=False,
+                        log=lambda *_: None).set_index("substeps")
+    assert df.loc[60, "err_mean_mm"] == 0.0                      # the reference itself
+    assert not df.loc[34, "stable"] and df.loc[50, "stable"] and df.loc[60, "stable"]
+    assert df.loc[50, "expert_success"] == 1.0 and df.loc[50, "max_strain"] < 1.2
+    assert 0 < df.loc[50, "err_mean_mm"] < 20
+    # past the stability limit the cloth blows up: strained links, a failed expert
+    assert df.loc[34, "max_strain"] > 1.5 and df.loc[34, "expert_success"] == 0.0
+    assert (df.fwd_steps_per_s > 0).all()

@@ -1,6 +1,6 @@
 """pwil: Primal Wasserstein Imitation Learning (Dadashi et al. 2021) with SB3's TD3."""
 from bench.api import MethodSpec, Uses
-from methods.pwil.config import PRESETS, PWILConfig
+from methods.pwil.config import PRESETS, TASK_OVERRIDES, PWILConfig
 from methods.pwil.train import train
 
 METHOD = MethodSpec(
@@ -10,4 +10,5 @@ METHOD = MethodSpec(
     uses=Uses(demo_states=True, demo_actions=True),
     description="TD3 on a greedy Wasserstein-coupling reward to the demo's (s, a) atoms",
     presets=PRESETS,
+    task_overrides=TASK_OVERRIDES,
 )

@@ -73,3 +73,7 @@ class PWILConfig:
 
 
 PRESETS = {"paper": {}, "cpu": {}}
+
+
+# T is the episode length: the cloth's episodes are 80 steps.
+TASK_OVERRIDES: dict[str, dict] = {"cloth": {"horizon": 80}}

@@ -94,6 +94,10 @@ def make_learner(env, episode_length: int, demo, config: PWILConfig, seed: int):
 def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
     set_torch_threads(config.torch_threads)
     seed_everything(seed)
+    if config.horizon != task.episode_length:
+        raise ValueError(f"pwil horizon T={config.horizon} must equal task {task.name!r}'s "
+                         f"episode length {task.episode_length} (the agent's mass is 1/T per "
+                         f"step); fix: --set horizon={task.episode_length}")
     model, atoms, filled = make_learner(task.env, task.episode_length, demo, config, seed)
 
     def policy():

@@ -93,7 +93,7 @@ class ClothHang(Env):
                 k, (2, 3), minval=-1.0, maxval=1.0)
         disp_units = disp_units + state.info["bias"]
         s = self._step(sim.ClothState(ps["x"], ps["v"], ps["grip"]),
-                       disp_units * sim.ACTION_SCALE)
+                       disp_units * (sim.ACTION_STEP / self.params.substeps))
         t = ps["t"] + 1.0
         ps2 = {"x": s.x, "v": s.v, "grip": s.grip, "t": t}
         reward = jnp.where(t >= self.episode_length, success(s.x), 0.0)

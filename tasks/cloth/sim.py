@@ -49,7 +49,8 @@ GRID0 = (24, 24)  # (row, col) offset of the cloth in the original 64 x 64 index
 POLE_YZ = (0.3, 0.15)
 POLE_RADIUS = 0.01
 GRIPPER_RADIUS = 0.01
-ACTION_SCALE = 1e-3  # displacement per substep per unit action (0.05 per action step)
+ACTION_STEP = 0.05  # gripper displacement per action step per unit action (the original:
+#                     1e-3 per substep x 50 substeps; spread over the substeps whatever dt)
 # The grippers' start: the settled positions of particles 53 (row 2, col 5) and 245
 # (row 10, col 5), hard-coded as in the original.
 GRIPPER_START = ((0.40625, -0.0005, 0.51645), (0.53125, -0.0005, 0.51644))
@@ -215,12 +216,12 @@ def substep(p: ClothParams, s: ClothState, disp: jax.Array) -> ClothState:
     return ClothState(gn(x), gn(v), gn(grip))
 
 
-def action_displacement(action: jax.Array) -> jax.Array:
+def action_displacement(action: jax.Array, substeps: int = 50) -> jax.Array:
     """(8,) action [dx0, dy0, dz0, suction0, dx1, dy1, dz1, suction1] -> (2, 3) gripper
-    displacement per substep. The suction entries are ignored (the original forced them
-    to 0)."""
+    displacement per substep (0.05 per action step in all). The suction entries are
+    ignored (the original forced them to 0)."""
     a = jnp.clip(action, -1.0, 1.0).reshape(2, 4)[:, :3]
-    return a * ACTION_SCALE
+    return a * ACTION_STEP / substeps
 
 
 def make_step(p: ClothParams):
