@@ -65,6 +65,22 @@ class Policy:
     init_memory: Callable[..., Any] | None = None
 
 
+def start_memory(init_memory, params, act_key):
+    """An episode's initial policy memory (None for a stateless policy); `act_key` is the
+    episode's action key (the memory's key is derived from it)."""
+    if init_memory is None:
+        return None
+    import jax
+    return init_memory(params, jax.random.fold_in(act_key, 1))
+
+
+def act_step(act, init_memory, params, x, key, deterministic, memory):
+    """(action, memory) for one step of a stateless or stateful JAX policy."""
+    if init_memory is None:
+        return act(params, x, key, deterministic), memory
+    return act(params, x, key, deterministic, memory)
+
+
 @dataclasses.dataclass
 class TrainResult:
     policy: Policy

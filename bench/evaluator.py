@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench.api import InformationError, Policy
+from bench.api import InformationError, Policy, act_step, start_memory
 from tasks.core import Task, env_matched_state
 
 EVAL_KEY_SALT = 0x5EED  # eval keys never collide with a method's training keys of that seed
@@ -88,14 +88,11 @@ def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory
         def body(carry, k):
             (s, alive, ret, length), mem = carry
             x = s if kind == "jax_state" else s.obs
-            if init_memory is None:
-                a = act(params, x, k, deterministic)
-            else:
-                a, mem = act(params, x, k, deterministic, mem)
+            a, mem = act_step(act, init_memory, params, x, k, deterministic, mem)
             nxt = _step_masked(env, s, a, alive, ret, length)
             return (nxt, mem), env_matched_state(env, nxt[0])
 
-        mem = None if init_memory is None else init_memory(params, jax.random.fold_in(k_act, 1))
+        mem = start_memory(init_memory, params, k_act)
         init = ((s, jnp.ones(()), jnp.zeros(()), jnp.zeros(())), mem)
         ((_, _, ret, length), _), states = jax.lax.scan(body, init,
                                                         jax.random.split(k_act, horizon))

@@ -178,27 +178,26 @@ def inapplicable(task: Task, p: Perturbation) -> str | None:
 def perturbed_task(task: Task, p: Perturbation) -> Task:
     """The task with perturbed test dynamics (cached: one env object, so one compilation
     per evaluated policy)."""
-    if p.family == "test_noise":
-        env = build_env(task.spec, test_noise=p.magnitude)
-        return Task(spec=task.spec, env=_Perturbed(env, Perturbation("action_bias", 0.0)))
-    if p.family in ("actuator", "mass", "friction"):
-        env = _with_system(task, p)
+    if p.family in ("actuator", "mass", "friction", "test_noise"):
+        env = (build_env(task.spec, test_noise=p.magnitude) if p.family == "test_noise"
+               else _with_system(task, p))
         # Wrapped too, so every variant has the same state structure (keys in info).
         return Task(spec=task.spec, env=_Perturbed(env, Perturbation("action_bias", 0.0)))
     return Task(spec=task.spec, env=_Perturbed(task.env, p))
 
 
-def default_set(task: Task | None = None) -> list[Perturbation]:
-    """The transfer column's perturbations: the task's declared ones, else every generic
-    family at its default magnitude."""
+def _defaults(task: Task | None) -> tuple[tuple[str, float], ...]:
+    """(family, default magnitude) pairs: the task's declared ones, else every generic
+    family at DEFAULTS."""
     declared = None if task is None else task.spec.transfer
-    if declared is not None:
-        return [Perturbation(f, m) for f, m in declared]
-    return [Perturbation(f, DEFAULTS[f]) for f in GENERIC]
+    return declared if declared is not None else tuple((f, DEFAULTS[f]) for f in GENERIC)
+
+
+def default_set(task: Task | None = None) -> list[Perturbation]:
+    """The transfer column's perturbations."""
+    return [Perturbation(f, m) for f, m in _defaults(task)]
 
 
 def grid_set(task: Task | None = None) -> list[Perturbation]:
     """The robustness-curve grid over the task's families."""
-    declared = None if task is None else task.spec.transfer
-    fams = GENERIC if declared is None else [f for f, _ in declared]
-    return [Perturbation(f, m) for f in fams for m in GRID[f]]
+    return [Perturbation(f, m) for f, _ in _defaults(task) for m in GRID[f]]

@@ -52,8 +52,9 @@ def build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
 def _build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
     kind, _, name = spec.env.partition(":")
     kwargs = spec.kwargs()
-    if test_noise and name != "cloth":
-        raise ValueError(f"task {spec.name!r} has no test_noise dynamics")
+    if test_noise and "test_noise" not in dict(spec.transfer or ()):
+        raise ValueError(f"task {spec.name!r} declares no test_noise dynamics "
+                         "(TaskSpec.transfer)")
     if kind == "brax":
         return brax_envs.get_environment(name, backend=spec.backend, **kwargs)
     if kind == "ildbench" and name == "pointmass":

@@ -170,6 +170,7 @@ class _PPOAct:
 
 def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> dict:
     """Roll `policy` from env.reset(key) for each key; arrays as in the demo format."""
+    from bench.api import act_step, start_memory
     env, T = task.env, task.episode_length
 
     def episode(key):
@@ -178,16 +179,13 @@ def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> 
 
         def body(carry, k):
             s, mem = carry
-            if policy.init_memory is None:
-                a = policy.act(policy.params, s.obs, k, deterministic)
-            else:
-                a, mem = policy.act(policy.params, s.obs, k, deterministic, mem)
+            a, mem = act_step(policy.act, policy.init_memory, policy.params, s.obs, k,
+                              deterministic, mem)
             a = jnp.clip(a, -1.0, 1.0)
             s2 = env.step(s, a)
             return (s2, mem), (s.obs, task.matched_state(s), a, s2.reward, s2.done)
 
-        mem = (None if policy.init_memory is None
-               else policy.init_memory(policy.params, jax.random.fold_in(k_act, 1)))
+        mem = start_memory(policy.init_memory, policy.params, k_act)
         (sT, _), (obs, states, actions, rewards, dones) = jax.lax.scan(
             body, (s0, mem), jax.random.split(k_act, T))
         obs = jnp.concatenate([obs, sT.obs[None]])

@@ -69,9 +69,6 @@ class ClothHang(Env):
         self._s0 = sim.settled_state(sim.ClothParams())
         self.episode_length = EPISODE_LENGTH
 
-    def _observe(self, ps: dict) -> jax.Array:
-        return self.matched_state(ps)
-
     def reset(self, rng: jax.Array) -> State:
         s0 = self._s0
         k_noise, k_bias = jax.random.split(rng)
@@ -79,13 +76,13 @@ class ClothHang(Env):
         ps = {"x": jnp.asarray(s0.x), "v": jnp.asarray(s0.v), "grip": jnp.asarray(s0.grip),
               "t": jnp.zeros(())}
         zero = jnp.zeros(())
-        return State(pipeline_state=ps, obs=self._observe(ps), reward=zero, done=zero,
+        return State(pipeline_state=ps, obs=self.matched_state(ps), reward=zero, done=zero,
                      metrics={"max_strain": sim.max_strain(ps["x"])},
                      info={"noise_key": k_noise, "bias": bias})
 
     def step(self, state: State, action: jax.Array) -> State:
         ps = state.pipeline_state
-        disp_units = jnp.clip(action, -1.0, 1.0).reshape(2, 4)[:, :3]
+        disp_units = sim.action_units(action)
         key = state.info["noise_key"]
         if self.noise > 0:
             key, k = jax.random.split(key)
@@ -93,11 +90,11 @@ class ClothHang(Env):
                 k, (2, 3), minval=-1.0, maxval=1.0)
         disp_units = disp_units + state.info["bias"]
         s = self._step(sim.ClothState(ps["x"], ps["v"], ps["grip"]),
-                       disp_units * (sim.ACTION_STEP / self.params.substeps))
+                       sim.substep_displacement(disp_units, self.params.substeps))
         t = ps["t"] + 1.0
         ps2 = {"x": s.x, "v": s.v, "grip": s.grip, "t": t}
         reward = jnp.where(t >= self.episode_length, success(s.x), 0.0)
-        return state.replace(pipeline_state=ps2, obs=self._observe(ps2), reward=reward,
+        return state.replace(pipeline_state=ps2, obs=self.matched_state(ps2), reward=reward,
                              done=jnp.zeros_like(state.done),
                              metrics={"max_strain": sim.max_strain(s.x)},
                              info={"noise_key": key, "bias": state.info["bias"]})

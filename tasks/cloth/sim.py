@@ -20,8 +20,9 @@ friction, gripper collisions, rendering.
 Substep order (as the original): gravity, springs, damping, pole, grippers (attach + move),
 gripper positions += displacement and clip to the box, x clip, v clip, x += dt v.
 
-Speed/memory: the neighbour table is precomputed ((288, 8) indices + mask + rest lengths);
-the substeps of one action are a lax.scan wrapped in jax.checkpoint, so reverse mode stores
+Speed/memory: links are the 8 precomputed directions on the (12, 24) grid, read by shifted
+slices (no gather, no scatter in the gradient; `neighbours()` is the same links as a table,
+the tests' reference); the substeps of one action are a lax.scan wrapped in jax.checkpoint, so reverse mode stores
 one state per action step, not 50 x 80 substep states. With `grad_norm` the original's
 stabilizer runs after every substep and gripper interaction: an identity whose cotangent is
 replaced by nan_to_num(g / ||g||) / 288 per array (per example under vmap).
@@ -85,19 +86,23 @@ class ClothState(NamedTuple):
     grip: jax.Array   # (2, 4) gripper (x, y, z, r)
 
 
+# The 8 link directions (row, column offsets): structural and shear.
+_OFFSETS = tuple((di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0))
+
+
 @functools.lru_cache(maxsize=None)
 def neighbours() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(idx (288, 8) int32, mask (288, 8) bool, rest (288, 8) float32): each particle's 8
     neighbours (structural and shear) in row-major particle order; missing ones masked and
-    pointing at the particle itself."""
-    offs = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
+    pointing at the particle itself. The simulator reads links by slices (`_links`); this
+    table is the independent reference the tests check it against."""
     idx = np.zeros((N, 8), np.int32)
     mask = np.zeros((N, 8), bool)
     rest = np.ones((N, 8), np.float32)
     for i in range(ROWS):
         for j in range(COLS):
             p = i * COLS + j
-            for k, (di, dj) in enumerate(offs):
+            for k, (di, dj) in enumerate(_OFFSETS):
                 a, b = i + di, j + dj
                 ok = 0 <= a < ROWS and 0 <= b < COLS
                 idx[p, k] = a * COLS + b if ok else p
@@ -133,9 +138,6 @@ def _gn_bwd(_, g):
 _gn.defvjp(_gn_fwd, _gn_bwd)
 
 
-_OFFSETS = tuple((di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0))
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
 def spring_forces(x: jax.Array, stiffness: float) -> jax.Array:
     """(288, 3) spring forces F = -dE/dx of the spring energy.
@@ -160,15 +162,21 @@ def _forces_bwd(stiffness, x, g):
 spring_forces.defvjp(_forces_fwd, _forces_bwd)
 
 
-def _spring_forces(x: jax.Array, stiffness: float) -> jax.Array:
+def _links(x: jax.Array):
+    """Per link direction: (d (12, 24, 3) neighbour minus particle, valid (12, 24) mask of
+    links inside the cloth, rest length), by shifted slices of the padded grid."""
     g = x.reshape(ROWS, COLS, 3)
     pad = jnp.pad(g, ((1, 1), (1, 1), (0, 0)))
-    f = jnp.zeros_like(g)
     for di, dj in _OFFSETS:
-        d = pad[1 + di:1 + di + ROWS, 1 + dj:1 + dj + COLS] - g
         valid = np.zeros((ROWS, COLS), bool)
         valid[max(0, -di):ROWS - max(0, di), max(0, -dj):COLS - max(0, dj)] = True
-        rest = SPACING * np.sqrt(di * di + dj * dj)
+        yield (pad[1 + di:1 + di + ROWS, 1 + dj:1 + dj + COLS] - g, valid,
+               SPACING * np.sqrt(di * di + dj * dj))
+
+
+def _spring_forces(x: jax.Array, stiffness: float) -> jax.Array:
+    f = jnp.zeros((ROWS, COLS, 3), x.dtype)
+    for d, valid, rest in _links(x):
         sq = jnp.sum(d * d, -1)
         ok = valid & (sq > 0)
         length = jnp.sqrt(jnp.where(ok, sq, 1.0))  # safe at zero length
@@ -179,9 +187,8 @@ def _spring_forces(x: jax.Array, stiffness: float) -> jax.Array:
 
 def max_strain(x: jax.Array) -> jax.Array:
     """Largest link length / rest length (1 at rest; the unstable cloth reached 1.6-1.8)."""
-    idx, mask, rest = (jnp.asarray(a) for a in neighbours())
-    length = jnp.linalg.norm(x[idx] - x[:, None, :], axis=-1)
-    return jnp.max(jnp.where(mask, length / rest, 0.0))
+    return jnp.max(jnp.stack([jnp.max(jnp.where(valid, jnp.linalg.norm(d, axis=-1) / rest, 0.0))
+                              for d, valid, rest in _links(x)]))
 
 
 def substep(p: ClothParams, s: ClothState, disp: jax.Array) -> ClothState:
@@ -216,12 +223,22 @@ def substep(p: ClothParams, s: ClothState, disp: jax.Array) -> ClothState:
     return ClothState(gn(x), gn(v), gn(grip))
 
 
-def action_displacement(action: jax.Array, substeps: int = 50) -> jax.Array:
+def action_units(action: jax.Array) -> jax.Array:
     """(8,) action [dx0, dy0, dz0, suction0, dx1, dy1, dz1, suction1] -> (2, 3) gripper
-    displacement per substep (0.05 per action step in all). The suction entries are
-    ignored (the original forced them to 0)."""
-    a = jnp.clip(action, -1.0, 1.0).reshape(2, 4)[:, :3]
-    return a * ACTION_STEP / substeps
+    velocities clipped to [-1, 1]. The suction entries are ignored (the original forced
+    them to 0)."""
+    return jnp.clip(action, -1.0, 1.0).reshape(2, 4)[:, :3]
+
+
+def substep_displacement(units: jax.Array, substeps: int = 50) -> jax.Array:
+    """Gripper velocities in action units -> displacement per substep (ACTION_STEP per
+    action step in all, whatever the substep count)."""
+    return units * (ACTION_STEP / substeps)
+
+
+def action_displacement(action: jax.Array, substeps: int = 50) -> jax.Array:
+    """(8,) action -> (2, 3) gripper displacement per substep."""
+    return substep_displacement(action_units(action), substeps)
 
 
 def make_step(p: ClothParams):
