@@ -13,6 +13,7 @@
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench expert train --task T      train a PPO expert (progress, time left)
     ildbench expert demo --task T       roll the expert into the task's demo file
+    ildbench expert calibrate --task T  per-task default transfer magnitudes (expert keeps 80%)
 """
 from __future__ import annotations
 
@@ -253,6 +254,11 @@ def cmd_expert(args):
     get_spec(args.task)  # unknown task -> error listing valid ones
     if args.expert_cmd == "train":
         train_expert(args.task, seed=args.seed, num_timesteps=args.steps)
+    elif args.expert_cmd == "calibrate":
+        from bench.calibrate import CAL_DIR, calibrate
+        calibrate(args.task)
+        print(f"written: {CAL_DIR}/{args.task}.md; put the transfer= tuple above into the "
+              f"task's TaskSpec in tasks/registry.py")
     else:
         make_demo(args.task, rollouts=args.rollouts, keep=args.keep, seed=args.seed)
     return 0
@@ -373,6 +379,9 @@ def build_parser():
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--rollouts", type=int, default=64)
     e.add_argument("--keep", type=int, default=16)
+    e = esub.add_parser("calibrate", help="per-task default transfer magnitudes from the "
+                                          "expert's own returns under each family")
+    e.add_argument("--task", required=True)
     p.set_defaults(fn=cmd_expert)
     return ap
 

@@ -13,8 +13,9 @@
                   original's uniform +/-0.05 per-step action noise and fixed bias up to
                   +/-0.2, so m = 1 is the paper's test); only tasks that declare it
 
-A task may name its own families and default magnitudes (TaskSpec.transfer, e.g. cloth:
-test_noise = 1 only); otherwise DEFAULTS below apply.
+A task names its own families and default magnitudes in TaskSpec.transfer (cloth:
+test_noise = 1 only; the brax tasks: chosen by `ildbench expert calibrate` so that the
+expert keeps >= 80% of its return, bench/calibrate.py); otherwise DEFAULTS below apply.
 
 The noise of a perturbed episode comes from its own key (derived from the episode's key),
 so an evaluation is reproducible, and the training methods never see these variants.
@@ -200,4 +201,5 @@ def default_set(task: Task | None = None) -> list[Perturbation]:
 
 def grid_set(task: Task | None = None) -> list[Perturbation]:
     """The robustness-curve grid over the task's families."""
-    return [Perturbation(f, m) for f, _ in _defaults(task) for m in GRID[f]]
+    return [Perturbation(f, m) for f, d in _defaults(task) for m in sorted(
+        set(GRID[f]) | {d}, key=abs)]

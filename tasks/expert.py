@@ -44,15 +44,24 @@ PPO_CONFIGS: dict[str, dict] = {
     "inverted_pendulum": dict(_PPO_BASE, num_timesteps=1_000_000, discounting=0.97),
     "reacher": dict(_PPO_BASE, num_timesteps=1_500_000, reward_scaling=5.0,
                     entropy_cost=1e-3),
+    # acrobot: with discounting 0.97 (a ~33-step, 0.33 s horizon) 10M steps (1290 s, 1 core)
+    # reached eval return 96.6 with random at 82.0: it never learned to pump energy into a
+    # swing-up. Discounting 0.99 did worse (eval return 60 at 4.3M steps, falling; stopped).
+    # Not solved yet (issue 3): next to try are a longer training episode than the 128-step
+    # demo (as for walker2d) and SAC.
     "acrobot": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.97,
                     reward_scaling=1.0),
     "swimmer": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.995),
     "hopper": dict(_PPO_BASE, num_timesteps=3_000_000),
     # walker2d: trained with 128-step episodes (the base recipe) the expert reached eval
     # return 269 in 10M steps (1857 s, 2 CPU cores) but every rollout falls at step ~106:
-    # it lunges forward because nothing after step 128 is ever seen. Train on brax's
-    # 1000-step episodes so that falling costs (not yet re-run; see README, issue 3).
-    "walker2d": dict(_PPO_BASE, num_timesteps=10_000_000, episode_length=1000),
+    # it lunges forward because nothing after step 128 is ever seen. On 1000-step episodes
+    # with discounting 0.95 (10M steps, 1662 s, 1 core) it still falls in all 64 rollouts:
+    # eval return 239 over 1000 steps, below the untrained policy's 299 (standing earns the
+    # healthy reward): a 20-step horizon makes the lunge pay. Next recipe (not yet run):
+    # discounting 0.99, so that the healthy reward of ~100 future steps outweighs a lunge.
+    "walker2d": dict(_PPO_BASE, num_timesteps=10_000_000, episode_length=1000,
+                     discounting=0.99),
     "ant": dict(_PPO_BASE, num_timesteps=10_000_000),
     "humanoid": dict(_PPO_BASE, num_timesteps=20_000_000),
 }

@@ -112,8 +112,11 @@ def test_invalid_perturbations(kw, match):
     ("hopper", "mass", "spring_mass_scale = 1"), ("hopper", "friction", None),
     ("inverted_pendulum", "mass", None), ("pointmass", "mass", None)])
 def test_families_that_cannot_change_a_task_are_flagged(task_name, family, expect):
+    from bench.calibrate import _undeclared
     from bench.perturb import inapplicable
-    why = inapplicable(make_task(task_name), Perturbation(family, 0.3))
+    task = make_task(task_name)  # what the family could change, before any declaration:
+    task = task.__class__(spec=_undeclared(task.spec), env=task.env)
+    why = inapplicable(task, Perturbation(family, 0.3))
     assert (why is None) if expect is None else (expect in why)
 
 
@@ -124,3 +127,78 @@ def test_skipped_families_are_recorded_and_left_out_of_the_summary(pm, monkeypat
                                                          Perturbation("mass", 0.3)])
     assert "no contacts" in out["friction=-0.5"]["skipped"]
     assert tr.transfer_summary(out) == out["mass=0.3"]["normalized"]
+
+
+# -- per-task defaults (bench/calibrate.py) -------------------------------------------------
+
+@pytest.mark.parametrize("points,expect,why", [
+    # kept = (e - 0) / 100, gap = (e - r) / 100
+    ([(0.1, 95, 0), (0.2, 85, 10), (0.3, 70, 0)], 0.2, "0.3 fails"),      # kept 0.70 < 0.8
+    ([(0.1, 95, 0), (0.2, 85, 50), (0.3, 90, 0)], 0.1, "0.2 fails"),      # gap 0.35 < 0.5
+    ([(0.1, 95, 0), (0.2, 90, 5)], 0.2, "up to the generic default"),
+    ([(0.1, 60, 0), (0.2, 90, 0)], None, "keeps 0.60"),                    # smallest fails
+    ([(0.1, 100, 0), (0.2, 100, 0)], None, "no measured effect"),
+])
+def test_calibration_choice_by_hand(points, expect, why):
+    from bench.calibrate import choose
+    default, reason = choose((100.0, 0.0), points)
+    assert default == expect and why in reason
+
+
+def test_calibration_is_sign_agnostic_and_catches_expert_worse_than_random():
+    """Reacher-like negative returns: observation noise that makes the expert worse than
+    random (what reacher's obs_noise 0.05 did) must not be chosen."""
+    from bench.calibrate import choose
+    default, _ = choose((-18.0, -106.0), [(0.005, -20.0, -106.0), (0.01, -40.0, -106.0),
+                                          (0.05, -169.0, -106.0)])
+    assert default == 0.005  # kept 0.98, then (-40 + 106) / 88 = 0.75 < 0.8
+    with pytest.raises(ValueError, match="retrain the expert"):
+        choose((-110.0, -106.0), [(0.1, -20.0, -106.0)])
+
+
+def test_calibrate_pointmass_end_to_end(monkeypatch, tmp_path):
+    from bench import calibrate as cal
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path / "refs"))
+    monkeypatch.setattr(cal, "CAL_DIR", str(tmp_path / "cal"))
+    out = cal.calibrate("pointmass", log=lambda *a: None)
+    assert "no contacts" in out["families"]["friction"]["reason"]
+    e0, r0 = out["nominal"]["expert"], out["nominal"]["random"]
+    for fam, default in out["transfer"]:
+        pts = out["families"][fam]["points"]
+        ok = [p for p in pts if abs(p["magnitude"]) <= abs(default)]
+        assert ok and all((p["expert"] - r0) / (e0 - r0) >= cal.KEEP for p in ok)
+    assert (tmp_path / "cal" / "pointmass.md").read_text().count("**default**") == \
+        len(out["transfer"])
+
+
+def test_registry_defaults_are_the_committed_calibration():
+    """A task's TaskSpec.transfer is data copied from its calibration; they must agree."""
+    from bench.calibrate import load
+    from tasks.registry import TASKS
+    checked = 0
+    for name, spec in TASKS.items():
+        cal = load(name)
+        if cal is None:
+            continue
+        assert spec.transfer == tuple((f, m) for f, m in cal["transfer"]), name
+        checked += 1
+    assert checked >= 3  # inverted_pendulum, reacher, hopper
+
+
+def test_default_summary_refuses_records_scored_under_other_defaults():
+    task = make_task("hopper")
+    entry = {"normalized": 0.5, "family": None, "magnitude": None}
+    full = {p.key: dict(entry, family=p.family, magnitude=p.magnitude)
+            for p in tr.default_set(task)}
+    assert tr.default_summary(full, task) == pytest.approx(0.5)
+    stale = dict(full)
+    stale.pop(next(iter(stale)))
+    stale["init_noise=0.123"] = dict(entry, family="init_noise", magnitude=0.123)
+    assert tr.default_summary(stale, task) is None
+
+
+def test_dynamics_effect_is_zero_at_zero_and_large_for_a_real_change(pm):
+    from bench.calibrate import EFFECT_TOL, dynamics_effect
+    task = pm[0]
+    assert dynamics_effect(task, Perturbation("mass", 0.0)) == 0.0
+    assert dynamics_effect(task, Perturbation("mass", 0.3)) > 10 * EFFECT_TOL
