@@ -45,10 +45,16 @@ _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CAL_DIR = os.path.join(_REPO, "results", "transfer", "calibration")
 
 
+def kept_gap(nominal: tuple[float, float], e: float, r: float) -> tuple[float, float]:
+    """(kept, gap) of expert return e and random return r under a perturbation."""
+    e0, r0 = nominal
+    return (e - r0) / (e0 - r0), (e - r) / (e0 - r0)
+
+
 def passes(nominal: tuple[float, float], point: tuple[float, float, float],
            keep: float = KEEP, gap: float = GAP) -> bool:
-    (e0, r0), (_, e, r) = nominal, point
-    return (e - r0) / (e0 - r0) >= keep and (e - r) / (e0 - r0) >= gap
+    k, g = kept_gap(nominal, point[1], point[2])
+    return k >= keep and g >= gap
 
 
 def choose(nominal: tuple[float, float], points: list[tuple[float, float, float]],
@@ -56,8 +62,7 @@ def choose(nominal: tuple[float, float], points: list[tuple[float, float, float]
     """(default magnitude or None, reason) from nominal (R_expert, R_random) and ladder
     points (magnitude, R_expert, R_random) in ascending |magnitude|."""
     e0, r0 = nominal
-    span = e0 - r0
-    if span <= 0:
+    if e0 <= r0:
         raise ValueError(f"the expert ({e0:g}) is not better than random ({r0:g}) on the "
                          "nominal task; retrain the expert before calibrating")
     m_last, e_last, r_last = points[-1]
@@ -67,7 +72,7 @@ def choose(nominal: tuple[float, float], points: list[tuple[float, float, float]
     chosen = None
     for m, e, r in points:
         if not passes(nominal, (m, e, r), keep, gap):
-            k, g = (e - r0) / span, (e - r) / span
+            k, g = kept_gap(nominal, e, r)
             if chosen is None:
                 return None, (f"the expert keeps {k:.2f} of its return (gap {g:.2f}) already at "
                               f"the smallest magnitude {m:g} (needs kept >= {keep}, gap >= {gap})")
@@ -142,7 +147,7 @@ def calibrate(task_name: str, log=print) -> dict:
             e, r = references(spec_free, demo, Perturbation(fam, m))
             points.append((m, e, r))
             log(f"[{task_name}] {fam}={m:g}: expert {e:9.2f}  random {r:9.2f}  kept "
-                f"{(e - nominal[1]) / (nominal[0] - nominal[1]):5.2f}")
+                f"{kept_gap(nominal, e, r)[0]:5.2f}")
             if not passes(nominal, (m, e, r)):
                 break
         default, reason = choose(nominal, points)
@@ -196,8 +201,7 @@ def render(cal: dict) -> str:
             lines.append(f"| {fam} | – | – | – | – | – | skipped: {v['reason']} |")
             continue
         for p in v["points"]:
-            k = (p["expert"] - r0) / (e0 - r0)
-            g = (p["expert"] - p["random"]) / (e0 - r0)
+            k, g = kept_gap((e0, r0), p["expert"], p["random"])
             mark = "**default**" if p["magnitude"] == v["default"] else ""
             lines.append(f"| {fam} | {p['magnitude']:g} | {p['expert']:.2f} | "
                          f"{p['random']:.2f} | {k:.2f} | {g:.2f} | {mark} |")

@@ -93,15 +93,8 @@ def default_summary(transfer: dict[str, dict], task: Task | None = None) -> floa
     other defaults (e.g. before the task's calibration) and its mean would not be comparable."""
     if not transfer:
         return None
-    keys = {p.key for p in default_set(task)}
-    if task is not None:
-        from bench.perturb import Perturbation, inapplicable
-        keys = {k for k in keys if inapplicable(task, Perturbation(*_parse(k))) is None}
+    from bench.perturb import inapplicable
+    keys = {p.key for p in default_set(task) if task is None or inapplicable(task, p) is None}
     if not keys <= set(transfer):
         return None
     return transfer_summary({k: v for k, v in transfer.items() if k in keys}, task)
-
-
-def _parse(key: str) -> tuple[str, float]:
-    family, magnitude = key.split("=")
-    return family, float(magnitude)
