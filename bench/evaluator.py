@@ -79,27 +79,30 @@ def _step_masked(env, s, a, alive, ret, length):
 
 @functools.lru_cache(maxsize=64)
 def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory=None):
-    """jit(vmap(one episode)) for a JAX policy; cached per (env, act) so it compiles once."""
+    """jit(vmap(one episode)) for a JAX policy; cached per (env, act) so it compiles once.
+    A perturbable env (bench/perturb.py) takes its magnitudes as the argument `dyn`, so all
+    perturbations of a task share this one compilation."""
 
-    def episode(params, key):
+    def episode(params, key, dyn):
+        e = env if dyn is None else env.bind(dyn)
         k_reset, k_act = jax.random.split(key)  # as before memory existed: same episodes
-        s = env.reset(k_reset)
+        s = e.reset(k_reset)
 
         def body(carry, k):
             (s, alive, ret, length), mem = carry
             x = s if kind == "jax_state" else s.obs
             a, mem = act_step(act, init_memory, params, x, k, deterministic, mem)
-            nxt = _step_masked(env, s, a, alive, ret, length)
-            return (nxt, mem), env_matched_state(env, nxt[0])
+            nxt = _step_masked(e, s, a, alive, ret, length)
+            return (nxt, mem), env_matched_state(e, nxt[0])
 
         mem = start_memory(init_memory, params, k_act)
         init = ((s, jnp.ones(()), jnp.zeros(()), jnp.zeros(())), mem)
         ((_, _, ret, length), _), states = jax.lax.scan(body, init,
                                                         jax.random.split(k_act, horizon))
-        return ret, length, jnp.concatenate([env_matched_state(env, s)[None], states])
+        return ret, length, jnp.concatenate([env_matched_state(e, s)[None], states])
 
-    def batch(params, keys):
-        ret, length, states = jax.vmap(episode, in_axes=(None, 0))(params, keys)
+    def batch(params, keys, dyn):
+        ret, length, states = jax.vmap(episode, in_axes=(None, 0, None))(params, keys, dyn)
         return ret, length, states[0]  # only the first episode's states leave the device
     return jax.jit(batch)
 
@@ -107,37 +110,50 @@ def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory
 @functools.lru_cache(maxsize=16)
 def _batched_env_fns(env):
     """Batched reset and masked step, each also returning the first episode's matched state
-    (one device call per step)."""
+    (one device call per step); `dyn` as in _jax_episodes."""
     def first(s):
         return env_matched_state(env, jax.tree_util.tree_map(lambda x: x[0], s))
 
-    def reset(keys):
-        s = jax.vmap(env.reset)(keys)
+    def bound(dyn):
+        return env if dyn is None else env.bind(dyn)
+
+    def reset(keys, dyn):
+        s = jax.vmap(bound(dyn).reset)(keys)
         return s, first(s)
 
-    def step(s, a, alive, ret, n):
-        out = jax.vmap(lambda *xs: _step_masked(env, *xs))(s, a, alive, ret, n)
+    def step(s, a, alive, ret, n, dyn):
+        e = bound(dyn)
+        out = jax.vmap(lambda *xs: _step_masked(e, *xs))(s, a, alive, ret, n)
         return out + (first(out[0]),)
     return jax.jit(reset), jax.jit(step)
+
+
+def _split_dynamics(env):
+    """(env to compile on, magnitudes argument or None)."""
+    template = getattr(env, "template", None)
+    if template is None:
+        return env, None
+    return template, jnp.asarray(env.mags)
 
 
 def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
                  deterministic: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(returns (N,), lengths (N,), matched states of the first episode (T+1, S))."""
     keys = jax.random.split(key, num_episodes)
+    env, dyn = _split_dynamics(task.env)
     if policy.kind in ("jax", "jax_state"):
-        f = _jax_episodes(task.env, policy.act, policy.kind, task.episode_length, deterministic,
+        f = _jax_episodes(env, policy.act, policy.kind, task.episode_length, deterministic,
                           policy.init_memory)
-        ret, length, states = f(policy.params, keys)
+        ret, length, states = f(policy.params, keys, dyn)
         return (np.asarray(ret, np.float64), np.asarray(length, np.int64),
                 np.asarray(states, np.float32))
     if policy.kind != "host":
         raise ValueError(f"unknown policy kind {policy.kind!r}; use 'jax', 'host' or 'jax_state'")
     # Host policy (torch/numpy): one batched jitted env call per step, one conversion each way.
-    reset, step = _batched_env_fns(task.env)
+    reset, step = _batched_env_fns(env)
     reset_keys = jax.vmap(lambda k: jax.random.split(k)[0])(keys)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).tolist())
-    s, s0 = reset(reset_keys)
+    s, s0 = reset(reset_keys, dyn)
     alive = jnp.ones(num_episodes)
     ret = jnp.zeros(num_episodes)
     length = jnp.zeros(num_episodes)
@@ -145,7 +161,7 @@ def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,
     for _ in range(task.episode_length):
         a = policy.act(policy.params, np.asarray(s.obs), rng, deterministic)
         s, alive, ret, length, s_first = step(s, jnp.asarray(a, jnp.float32), alive, ret,
-                                              length)
+                                              length, dyn)
         states.append(s_first)
     return (np.asarray(ret, np.float64), np.asarray(length, np.int64),
             np.asarray(jnp.stack(states), np.float32))

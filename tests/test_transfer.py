@@ -85,6 +85,54 @@ def test_noise_with_a_fixed_key_is_reproducible(pm):
     assert not np.allclose(a, ev.evaluate(pol, 6).returns)
 
 
+def test_traced_magnitudes_at_zero_reproduce_the_nominal_episodes(pm):
+    """The one-compilation path (magnitudes as a traced argument) with every magnitude 0
+    scores like the nominal env up to float32 rounding (another compiled program: ~1e-7
+    relative); magnitude 0 itself is routed to the nominal task, so it is exact."""
+    from bench.perturb import FAMILIES as F, _Perturbed
+    task, demo, pol = pm
+    zero = task.__class__(spec=task.spec, env=_Perturbed(task.env, np.zeros(len(F), np.float32)))
+    a = Evaluator(task, CFG).evaluate(pol, 4)
+    b = Evaluator(zero, CFG).evaluate(pol, 4)
+    np.testing.assert_allclose(a.returns, b.returns, rtol=1e-6)
+    np.testing.assert_allclose(a.trajectory, b.trajectory, rtol=1e-6, atol=1e-6)
+    assert perturbed_task(task, Perturbation("mass", 0.0)) is task
+
+
+def test_one_compilation_serves_every_perturbation(pm):
+    from bench.evaluator import _jax_episodes
+    task, demo, pol = pm
+    ps = [Perturbation("mass", 0.7), Perturbation("actuator", -0.4),
+          Perturbation("action_noise", 0.2), Perturbation("init_noise", 0.1)]
+    rets = [Evaluator(perturbed_task(task, p), CFG).evaluate(pol, 2).mean_return for p in ps]
+    assert len(set(rets)) == len(ps)  # each perturbation scored differently ...
+    template = perturbed_task(task, ps[0]).env.template
+    f = _jax_episodes(template, pol.act, pol.kind, task.episode_length, True, pol.init_memory)
+    assert f._cache_size() == 1  # ... by one compiled program
+
+
+@pytest.mark.parametrize("family,magnitude", [("action_noise", 0.3), ("mass", 0.5),
+                                              ("obs_noise", 0.1), ("action_bias", 0.3)])
+def test_host_and_jax_policies_agree_under_perturbation(family, magnitude, pm):
+    """The host path (torch/numpy policies: one batched env call per step) passes the same
+    magnitudes as the jitted-episode path."""
+    from bench.api import Policy
+    task = pm[0]
+    ev = Evaluator(perturbed_task(task, Perturbation(family, magnitude)), CFG)
+
+    def jax_pd(params, obs, key, deterministic):
+        return jnp.clip(-params * obs[..., :1] - obs[..., 1:], -1, 1)
+
+    def host_pd(params, obs, rng, deterministic):
+        return np.clip(-params * obs[:, :1] - obs[:, 1:], -1, 1)
+
+    a = ev.evaluate(Policy(jax_pd, 2.0), seed=1).returns
+    b = ev.evaluate(Policy(host_pd, 2.0, kind="host"), seed=1).returns
+    np.testing.assert_allclose(a, b, rtol=1e-5)
+    nominal = Evaluator(task, CFG).evaluate(Policy(jax_pd, 2.0), seed=1).returns
+    assert not np.allclose(a, nominal)
+
+
 def test_normalization_uses_references_under_the_same_perturbation(pm, monkeypatch,
                                                                    tmp_path):
     task, demo, pol = pm
