@@ -35,6 +35,30 @@ pwil = sys.modules["methods.pwil.train"]
 IMITATION = Uses(demo_states=True, demo_actions=True)
 
 
+def _mlp_macs(sizes) -> int:
+    """Multiply-accumulates of one forward pass of an MLP with these layer widths."""
+    return sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+
+def dac_arithmetic_ratio(obs_dim: int, act_dim: int, c: DACConfig = DACConfig()) -> float:
+    """DAC / plain TD3 speed that the arithmetic alone allows (the learner bound, env time
+    ignored), counting multiply-accumulates per update with backward = 2 x forward:
+    TD3: target actor + 2 target critics + 2 critics (fwd + bwd) + every `policy_delay`-th
+    update the actor through Q1 (fwd + bwd); DAC adds the reward (D forward on the TD3 batch)
+    and one discriminator update: forward + backward on policy + expert rows, and the
+    gradient penalty on the interpolates (forward, input gradient, and the double backward
+    through both = 2 x (forward + input gradient))."""
+    o = obs_dim + 1  # the absorbing indicator
+    actor = _mlp_macs((o, *c.actor_hidden, act_dim))
+    critic = _mlp_macs((o + act_dim, *c.critic_hidden, 1))
+    disc = _mlp_macs((o + act_dim, *c.disc_hidden, 1))
+    td3 = c.batch_size * (actor + 2 * critic + 3 * 2 * critic
+                          + 3 * (actor + critic) / c.policy_delay)
+    reward = c.batch_size * disc
+    d_update = 3 * 2 * c.disc_batch * disc + (2 + 2 * 2) * c.disc_batch * disc
+    return td3 / (td3 + reward + d_update)
+
+
 def _time(model, steps: int, warmup: int) -> float:
     model.learn(total_timesteps=warmup)
     t0 = time.perf_counter()
@@ -90,18 +114,23 @@ def main(argv=None):
                 model, cfg = build()
                 rates[kind].append(_time(model, args.steps, cfg.learning_starts + 256))
         p, m = np.median(rates["plain"]), np.median(rates["method"])
+        task = make_task(args.task)
+        bound = (dac_arithmetic_ratio(task.obs_size, task.action_size) if name == "dac"
+                 else float("nan"))
         rows.append(dict(task=args.task, method=name, threads=args.threads, steps=args.steps,
                          plain_td3_steps_per_s=round(p, 1), method_steps_per_s=round(m, 1),
-                         ratio=round(m / p, 3)))
+                         ratio=round(m / p, 3), arithmetic_ratio=round(bound, 3)))
         print(f"{args.task:>10s} {name:>5s}: plain TD3 {p:7.1f} env-steps/s, {name} {m:7.1f} "
-              f"env-steps/s, ratio {m / p:.2f} (target >= 0.8; threads {args.threads})",
-              flush=True)
+              f"env-steps/s, ratio {m / p:.2f} (target >= 0.8; threads {args.threads}; "
+              f"the arithmetic alone allows {bound:.2f})", flush=True)
     if args.out:
         import os
 
         import pandas as pd
         df = pd.DataFrame(rows)
-        df.to_csv(args.out, mode="a", header=not os.path.exists(args.out), index=False)
+        if os.path.exists(args.out):  # earlier rows kept (columns added since stay empty)
+            df = pd.concat([pd.read_csv(args.out), df], ignore_index=True)
+        df.to_csv(args.out, index=False)
     return rows
 
 

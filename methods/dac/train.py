@@ -137,7 +137,9 @@ class Discriminator(torch.nn.Module):
         super().__init__()
         self.net = _ortho_mlp((obs_dim + act_dim, *hidden, 1), torch.nn.Tanh)
         self.gp_weight = gp_weight
-        self.opt = torch.optim.Adam(self.parameters(), lr=lr)
+        # fused: one kernel for the whole Adam step (same update; ~1 ms less per update on
+        # a CPU core, where the step is otherwise 6 small ops per tensor).
+        self.opt = torch.optim.Adam(self.parameters(), lr=lr, fused=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -150,7 +152,7 @@ class Discriminator(torch.nn.Module):
         """log D - log(1 - D) = the logit (the original's default 'airl' reward)."""
         return self.logits(obs, act)
 
-    def loss(self, pol_obs, pol_act, exp_obs, exp_act, u=None):
+    def loss(self, pol_obs, pol_act, exp_obs, exp_act, u=None, stats: bool = True):
         x_pol = torch.cat([pol_obs, pol_act], -1)
         x_exp = torch.cat([exp_obs, exp_act], -1)
         logits = self.net(torch.cat([x_pol, x_exp], 0))
@@ -160,13 +162,15 @@ class Discriminator(torch.nn.Module):
         if u is None:
             u = torch.rand(len(x_pol), 1)
         gp = gradient_penalty(self.net, x_pol, x_exp, u)
-        stats = {"disc/loss": bce.item(), "disc/gp": gp.item(),
-                 "disc/expert_acc": (le > 0).float().mean().item(),
-                 "disc/policy_acc": (lp < 0).float().mean().item()}
-        return bce + self.gp_weight * gp, stats
+        out = {}
+        if stats:  # host syncs: only when reported
+            out = {"disc/loss": bce.item(), "disc/gp": gp.item(),
+                   "disc/expert_acc": (le > 0).float().mean().item(),
+                   "disc/policy_acc": (lp < 0).float().mean().item()}
+        return bce + self.gp_weight * gp, out
 
-    def update(self, pol_obs, pol_act, exp_obs, exp_act) -> dict:
-        loss, stats = self.loss(pol_obs, pol_act, exp_obs, exp_act)
+    def update(self, pol_obs, pol_act, exp_obs, exp_act, stats: bool = True) -> dict:
+        loss, stats = self.loss(pol_obs, pol_act, exp_obs, exp_act, stats=stats)
         self.opt.zero_grad()
         loss.backward()
         self.opt.step()
@@ -211,12 +215,13 @@ class DACTD3(TD3):
         actor_lr = cfg.actor_lr * 0.5 ** (self.num_timesteps // cfg.actor_lr_halving_steps)
         update_learning_rate(self.actor.optimizer, actor_lr)
         n_exp = len(self.expert_obs)
-        for _ in range(gradient_steps):
+        for k in range(gradient_steps):
             pol = self.replay_buffer.sample(cfg.disc_batch)
             i = torch.randint(0, n_exp, (cfg.disc_batch,))
             dstats = self.discriminator.update(pol.observations, pol.actions,
-                                               self.expert_obs[i], self.expert_actions[i])
-        closs = aloss = float("nan")
+                                               self.expert_obs[i], self.expert_actions[i],
+                                               stats=k == gradient_steps - 1)
+        closs = aloss = torch.tensor(float("nan"))  # read once at the end (no per-step sync)
         for _ in range(gradient_steps):
             self._n_updates += 1
             data = self.replay_buffer.sample(batch_size)
@@ -227,7 +232,7 @@ class DACTD3(TD3):
             critic_loss.backward()
             self.critic.optimizer.step()
             self.critic_updates += 1
-            closs = critic_loss.item()
+            closs = critic_loss.detach()
             if self._n_updates % self.policy_delay == 0:
                 if self.critic_updates > cfg.actor_start_updates:
                     real = 1.0 - data.observations[:, -1:]
@@ -238,9 +243,10 @@ class DACTD3(TD3):
                     torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.actor_grad_clip)
                     self.actor.optimizer.step()
                     self.actor_updates += 1
-                    aloss = actor_loss.item()
+                    aloss = actor_loss.detach()
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+        closs, aloss = float(closs), float(aloss)
         self.metrics = {**dstats, "train/critic_loss": closs, "train/actor_loss": aloss,
                         "train/reward_mean": float(reward.mean()), "train/actor_lr": actor_lr,
                         "train/actor_updates": self.actor_updates,
