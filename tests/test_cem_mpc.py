@@ -111,3 +111,29 @@ def test_planning_through_a_reward_hiding_view_of_a_task_with_metrics():
     s = s.replace(metrics={"reward_dist": jnp.zeros(()), "reward_ctrl": jnp.zeros(())})
     a, _ = planner.act((), s, jax.random.PRNGKey(1), True, planner.init_memory((), None))
     assert a.shape == (task.action_size,) and bool(jnp.isfinite(a).all())
+
+
+def test_planning_from_a_gated_state_when_the_env_mutates_metrics_in_place():
+    """brax's envs do `state.metrics.update(...)` on the state they are handed. From a state
+    of the gated view (metrics {}), that in-place update would grow the scan carry's own
+    dict mid-trace (failed: cem_mpc_track's planning-time probe on reacher and hopper)."""
+    from brax.envs.base import Wrapper
+    from bench.access import HideReward
+    from methods.cem_mpc.train import CEMPlanner
+
+    class MutatesMetrics(Wrapper):  # what brax's reacher/hopper step does
+        def step(self, state, action):
+            state.metrics.update(reward_dist=jnp.zeros(()))
+            return self.env.step(state, action)
+
+    task = make_task("pointmass")
+    cfg = CEMConfig(objective="track", horizon=4, population=8, elites=2, iterations=2)
+    env = HideReward(MutatesMetrics(task.env))
+    planner = CEMPlanner(env, task.action_size, cfg, matched_state=task.matched_state,
+                         goals=jnp.zeros((task.episode_length, task.state_size)),
+                         goal_mean=jnp.zeros(task.state_size), goal_std=jnp.ones(task.state_size))
+    s = env.reset(jax.random.PRNGKey(0))
+    assert s.metrics == {}
+    a, _ = jax.jit(lambda s: planner.act((), s, jax.random.PRNGKey(1), True,
+                                         planner.init_memory((), None)))(s)
+    assert a.shape == (task.action_size,) and bool(jnp.isfinite(a).all())

@@ -35,8 +35,10 @@ class CEMPlanner:
             s, alive, total = carry
             a, k = xs
             # The planner's env may report other metrics than the state it was handed (a
-            # reward-hiding view drops them): keep the carry's structure.
-            s2 = self.env.step(s, a).replace(metrics=s.metrics)
+            # reward-hiding view drops them), and brax's envs update the handed state's
+            # metrics dict in place: step a copy, and keep the carry's structure.
+            s2 = self.env.step(s.replace(metrics=dict(s.metrics)), a).replace(
+                metrics=s.metrics)
             if cfg.objective == "reward":
                 gain = s2.reward
             else:
