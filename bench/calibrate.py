@@ -104,7 +104,7 @@ def dynamics_effect(task, p: Perturbation, episodes: int = 4, seed: int = 0) -> 
             return jax.lax.scan(body, env.reset(k_reset), acts)[1]
         return jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(seed), episodes))
 
-    base = states(perturbed_task(task, Perturbation(p.family, 0.0)))
+    base = states(task)
     pert = states(perturbed_task(task, p))
     return float(jnp.max(jnp.abs(pert - base)) / jnp.maximum(jnp.max(jnp.abs(base)), 1.0))
 

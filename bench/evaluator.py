@@ -84,7 +84,7 @@ def _jax_episodes(env, act, kind, horizon: int, deterministic: bool, init_memory
     perturbations of a task share this one compilation."""
 
     def episode(params, key, dyn):
-        e = env if dyn is None else env.bind(dyn)
+        e = _bind(env, dyn)
         k_reset, k_act = jax.random.split(key)  # as before memory existed: same episodes
         s = e.reset(k_reset)
 
@@ -114,15 +114,12 @@ def _batched_env_fns(env):
     def first(s):
         return env_matched_state(env, jax.tree_util.tree_map(lambda x: x[0], s))
 
-    def bound(dyn):
-        return env if dyn is None else env.bind(dyn)
-
     def reset(keys, dyn):
-        s = jax.vmap(bound(dyn).reset)(keys)
+        s = jax.vmap(_bind(env, dyn).reset)(keys)
         return s, first(s)
 
     def step(s, a, alive, ret, n, dyn):
-        e = bound(dyn)
+        e = _bind(env, dyn)
         out = jax.vmap(lambda *xs: _step_masked(e, *xs))(s, a, alive, ret, n)
         return out + (first(out[0]),)
     return jax.jit(reset), jax.jit(step)
@@ -134,6 +131,11 @@ def _split_dynamics(env):
     if template is None:
         return env, None
     return template, jnp.asarray(env.mags)
+
+
+def _bind(env, dyn):
+    """Inside a trace: the compiled-on env under magnitudes `dyn` (None: env itself)."""
+    return env if dyn is None else env.bind(dyn)
 
 
 def run_episodes(task: Task, policy: Policy, key: jax.Array, num_episodes: int,

@@ -102,27 +102,25 @@ def _scaled_physics(inner, mags):
     the magnitudes are traced values: one compilation serves every magnitude."""
     f_act, f_mass, f_fric = (1.0 + _m(mags, f) for f in ("actuator", "mass", "friction"))
     sys = getattr(inner, "sys", None)
-    if sys is None and not hasattr(inner, "force_scale"):  # e.g. cloth: its own test_noise
-        yield
-        return
-    if sys is None:  # pointmass: no contact, so no friction
-        saved = inner.force_scale, inner.mass
-        inner.force_scale, inner.mass = saved[0] * f_act, saved[1] * f_mass
-        try:
-            yield
-        finally:
-            inner.force_scale, inner.mass = saved
-        return
-    inertia = sys.link.inertia
-    inner.sys = sys.replace(
-        actuator=sys.actuator.replace(gear=sys.actuator.gear * f_act),
-        link=sys.link.replace(inertia=inertia.replace(mass=inertia.mass * f_mass,
-                                                      i=inertia.i * f_mass)),
-        body_mass=sys.body_mass * f_mass, geom_friction=sys.geom_friction * f_fric)
+    if sys is not None:
+        inertia = sys.link.inertia
+        scaled = {"sys": sys.replace(
+            actuator=sys.actuator.replace(gear=sys.actuator.gear * f_act),
+            link=sys.link.replace(inertia=inertia.replace(mass=inertia.mass * f_mass,
+                                                          i=inertia.i * f_mass)),
+            body_mass=sys.body_mass * f_mass, geom_friction=sys.geom_friction * f_fric)}
+    elif hasattr(inner, "force_scale"):  # pointmass: no contact, so no friction
+        scaled = {"force_scale": inner.force_scale * f_act, "mass": inner.mass * f_mass}
+    else:  # e.g. cloth: its own test_noise
+        scaled = {}
+    saved = {name: getattr(inner, name) for name in scaled}
+    for name, value in scaled.items():
+        setattr(inner, name, value)
     try:
         yield
     finally:
-        inner.sys = sys
+        for name, value in saved.items():
+            setattr(inner, name, value)
 
 
 class _Perturbed(Wrapper):

@@ -16,7 +16,7 @@ import numpy as np
 
 from bench.api import Policy
 from bench.evaluator import EvalConfig, Evaluator, random_policy
-from bench.perturb import Perturbation, default_set, perturbed_task
+from bench.perturb import Perturbation, default_set, inapplicable, perturbed_task
 from bench.store import write_json_atomic
 from tasks.core import Task
 from tasks.demo import Demo
@@ -59,7 +59,6 @@ def evaluate_transfer(task: Task, demo: Demo, policy: Policy, seed: int, config:
                       perturbations, allow_sim_at_test: bool = False) -> dict[str, dict]:
     """{perturbation key: {family, magnitude, return, normalized, expert_return,
     random_return}} for the policy under each perturbation."""
-    from bench.perturb import inapplicable
     out = {}
     for p in perturbations:
         why = inapplicable(task, p)
@@ -79,7 +78,6 @@ def transfer_summary(transfer: dict[str, dict], task: Task | None = None) -> flo
     """The leaderboard's 'transfer' number: mean normalized score over the families at their
     default magnitudes (magnitude-0 and skipped entries excluded; with `task`, also entries
     of families that cannot affect it, for records made before that rule)."""
-    from bench.perturb import Perturbation, inapplicable
     vals = [v["normalized"] for v in transfer.values()
             if v["magnitude"] != 0 and "skipped" not in v and not (
                 task is not None and inapplicable(task, Perturbation(v["family"],
@@ -93,7 +91,6 @@ def default_summary(transfer: dict[str, dict], task: Task | None = None) -> floa
     other defaults (e.g. before the task's calibration) and its mean would not be comparable."""
     if not transfer:
         return None
-    from bench.perturb import inapplicable
     keys = {p.key for p in default_set(task) if task is None or inapplicable(task, p) is None}
     if not keys <= set(transfer):
         return None
