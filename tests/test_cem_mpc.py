@@ -137,3 +137,38 @@ def test_planning_from_a_gated_state_when_the_env_mutates_metrics_in_place():
     a, _ = jax.jit(lambda s: planner.act((), s, jax.random.PRNGKey(1), True,
                                          planner.init_memory((), None)))(s)
     assert a.shape == (task.action_size,) and bool(jnp.isfinite(a).all())
+
+
+def test_tracking_never_prefers_ending_the_episode():
+    """A cost summed only while alive makes termination free: on hopper the tracking planner
+    fell on purpose (normalized -0.24, below random). The terminal state is held and charged
+    against every later goal, so a plan that terminates scores worse than one that tracks."""
+    from brax.envs.base import Wrapper
+    from methods.cem_mpc.train import CEMPlanner
+
+    class EndsLeftOfMinusHalf(Wrapper):
+        def step(self, state, action):
+            s = self.env.step(state, action)
+            return s.replace(done=(s.obs[0] < -0.5).astype(jnp.float32))
+
+    task = make_task("pointmass")
+    env = EndsLeftOfMinusHalf(task.env)
+    s0 = env.reset(jax.random.PRNGKey(0))
+    x0 = np.asarray(task.matched_state(s0))
+    # Goals: the start state held, a perfect tracker pays nothing; push left and end instead.
+    goals = jnp.tile(jnp.asarray(x0), (task.episode_length, 1))
+    cfg = CEMConfig(objective="track", horizon=40)
+    planner = CEMPlanner(env, task.action_size, cfg, matched_state=task.matched_state,
+                         goals=goals, goal_mean=jnp.zeros(task.state_size),
+                         goal_std=jnp.ones(task.state_size))
+    at_rest = jnp.array([-0.45, 0.0])                 # (x, v): zero action holds it
+    s0 = s0.replace(pipeline_state=at_rest, obs=at_rest)
+    hold = jnp.zeros((40, task.action_size))
+    end = jnp.zeros((40, task.action_size)).at[:8, 0].set(-1.0)
+    score_hold = float(planner.score(s0, hold, 0))
+    score_end = float(planner.score(s0, end, 0))
+    # by hand: holding (x, v) = (-0.45, 0) against goal x0 costs 40 * |(-0.45, 0) - x0|^2;
+    # ending after a few steps would cost only those steps if the cost were masked
+    d = np.array([-0.45, 0.0]) - x0
+    assert score_hold == pytest.approx(-40 * float(d @ d), rel=1e-5)
+    assert score_end < score_hold

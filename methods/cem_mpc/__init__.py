@@ -27,5 +27,6 @@ TRACK = MethodSpec(
                 "full state at test time (no reward)",
     presets=PRESETS,
     reference=True,
+    version="2",  # 2: the tracking cost continues past termination (held terminal state)
 )
 METHODS = (METHOD, TRACK)

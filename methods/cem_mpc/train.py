@@ -40,12 +40,16 @@ class CEMPlanner:
             s2 = self.env.step(s.replace(metrics=dict(s.metrics)), a).replace(
                 metrics=s.metrics)
             if cfg.objective == "reward":
-                gain = s2.reward
+                gain = alive * s2.reward
             else:
+                # A cost must not stop at termination: masking it would make ending the
+                # episode (a hopper falling) the cheapest plan. The terminal state is held
+                # and charged against every later demo state, as the episode would be.
+                s2 = jax.tree.map(lambda new, old: jnp.where(alive > 0, new, old), s2, s)
                 idx = jnp.minimum(t + k, self.goals.shape[0] - 1)   # s_{t+k+1} vs goal t+k
                 x = (self.matched_state(s2) - self.goal_mean) / self.goal_std
                 gain = -jnp.sum((x - self.goals[idx]) ** 2)
-            total = total + alive * gain
+            total = total + gain
             return (s2, alive * (1.0 - s2.done), total), None
 
         (_, _, total), _ = jax.lax.scan(body, (state, jnp.ones(()), jnp.zeros(())),
