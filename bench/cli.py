@@ -211,7 +211,8 @@ def cmd_tradeoff(args):
         df = tr.cloth_substeps()
         paths = tr._save(df, args.task, "substeps", out)
     elif args.part == "budget":
-        df = tr.budget_table(Store(args.store), args.task)
+        df = tr.budget_table(Store(args.store), args.task,
+                             tuple(args.minutes) if args.minutes else tr.BUDGET_MINUTES)
         paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
     else:
         from bench.budget import parse_seconds
@@ -350,6 +351,8 @@ def build_parser():
     p.add_argument("--batch", type=int, default=16, help="backends: parallel rollouts")
     p.add_argument("--budget", default=None, help="ild: training budget per cell (default 3m)")
     p.add_argument("--seeds", type=int, default=1, help="ild: seeds per cell")
+    p.add_argument("--minutes", type=float, nargs="+", default=None,
+                   help="budget: the budgets to read off the anytime curves (default 1 2 5 10)")
     p.add_argument("--out", default=None, help="default results/tradeoff")
     p.add_argument("--jax-cache", default=None)
     p.set_defaults(fn=cmd_tradeoff, force=False)  # for _run_all (the ILD grid)

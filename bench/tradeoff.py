@@ -162,8 +162,10 @@ def cloth_substeps(substeps=CLOTH_SUBSTEPS, batch: int = 10, repeats: int = 2,
 
 
 def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFrame:
-    """Per method (main variant), mean anytime score at each budget over runs whose budget
-    reaches it."""
+    """Per method and variant (the leaderboard's: runs pool only under equal version, preset,
+    config and evaluation), the mean anytime score at each budget over the runs whose
+    budget reaches it. `method` carries the variant id where a method has several."""
+    from bench.leaderboard import variant
     rows = []
     for r in store.records():
         if r["task"] != task or r.get("status") not in ("ok", "diverged"):
@@ -173,12 +175,20 @@ def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFram
             continue
         for m in minutes:
             if secs + 1e-6 >= 60 * m:
-                rows.append({"method": r["method"], "minutes": m, "seed": r["seed"],
-                             "normalized": float(curves.value_at(r.get("curve"), [60 * m])[0])})
-    df = pd.DataFrame(rows, columns=["method", "minutes", "seed", "normalized"])
+                # At the run's own budget: its final score (the leaderboard's number, on the
+                # final evaluation's episodes); before it: the anytime curve.
+                final = r.get("final_normalized")
+                score = (final if abs(secs - 60 * m) < 1e-6 and final is not None
+                         else float(curves.value_at(r.get("curve"), [60 * m])[0]))
+                rows.append({"method": r["method"], "variant": variant(r), "minutes": m,
+                             "seed": r["seed"], "normalized": float(score)})
+    df = pd.DataFrame(rows, columns=["method", "variant", "minutes", "seed", "normalized"])
     if df.empty:
         raise ValueError(f"no finished runs on {task!r} with a wall-clock budget in "
                          f"{store.root}")
+    several = df.groupby("method").variant.nunique()
+    df["method"] = [f"{m} ({v})" if several[m] > 1 else m
+                    for m, v in zip(df.method, df.variant)]
     return (df.groupby(["method", "minutes"]).normalized.agg(["mean", "std", "count"])
             .reset_index())
 
@@ -233,7 +243,8 @@ def plot_budget(df: pd.DataFrame, task: str, out: str) -> str:
         ax.errorbar(g.minutes, g["mean"], yerr=g["std"].fillna(0), marker="o", label=method,
                     capsize=3)
     ax.set_xscale("log")
-    ax.set_xticks(BUDGET_MINUTES, [str(m) for m in BUDGET_MINUTES])
+    ticks = sorted(df.minutes.unique())
+    ax.set_xticks(ticks, [f"{m:g}" for m in ticks])
     ax.set_xlabel("training budget (minutes)")
     ax.set_ylabel("normalized score")
     ax.set_title(f"{task}: score vs budget")

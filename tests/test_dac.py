@@ -150,3 +150,28 @@ def test_arithmetic_bound_of_the_speed_ratio_by_hand():
     c = DACConfig(actor_hidden=(2,), critic_hidden=(2,), disc_hidden=(2,), batch_size=1,
                   disc_batch=1, policy_delay=1)
     assert dac_arithmetic_ratio(1, 1, c) == pytest.approx(112 / (112 + 8 + 96))
+    c2 = DACConfig(actor_hidden=(2,), critic_hidden=(2,), disc_hidden=(2,), batch_size=1,
+                   disc_batch=1, policy_delay=1, disc_every=2)
+    assert dac_arithmetic_ratio(1, 1, c2) == pytest.approx(112 / (112 + 8 + 48))
+
+
+@pytest.mark.parametrize("every,expected", [(1, 256), (3, 85)])
+def test_discriminator_updates_once_per_disc_every_td3_updates(every, expected):
+    """disc_every=1 is the original (one D update per TD3 update); 3 runs 256/3 -> 85 D
+    updates over two 128-update calls (the remainder carries to the next call)."""
+    cfg = DACConfig(actor_hidden=(8,), critic_hidden=(8,), disc_hidden=(8,), num_envs=4,
+                    steps_per_collect=8, disc_every=every, disc_batch=4, batch_size=4)
+    venv = dac.AbsorbingWrapper(BraxVecEnv(make_task("pointmass").env, 4, 128, seed=0))
+    model = dac.build_model(venv, cfg, np.zeros((4, 3), np.float32),
+                            np.zeros((4, 1), np.float32), seed=0)
+    model.learn(total_timesteps=32)          # random actions fill the buffer, no updates
+    calls = []
+    real = model.discriminator.update
+    model.discriminator.update = lambda *a, **k: calls.append(k["stats"]) or real(*a, **k)
+    model.train(128, cfg.batch_size)
+    model.train(128, cfg.batch_size)
+    assert model.disc_updates == len(calls) == expected
+    assert model.critic_updates == 256
+    assert sum(calls) == 2                  # loss statistics once per call
+    assert np.isfinite(model.metrics["disc/loss"])
+    assert model.metrics["train/disc_updates"] == expected

@@ -230,3 +230,22 @@ def test_masked_states_neither_deviate_nor_cover():
     assert float(g[2, 0]) == 0.0 and np.isfinite(np.asarray(g)).all()
     assert float(stepwise_l2(x, y, "sq", mask=mask).loss) == 0.0  # alive: (0 + 0) / 2
     assert float(stepwise_l2(x, y, "sq").loss) == 48.0 ** 2 / 3  # unmasked
+
+
+def test_speed_benchmark_reports_every_part_and_its_ratios():
+    """The benchmark's rows on pointmass (no APG: brax's trainer wants a brax env): the
+    per-step decomposition rows exist and the ratios are the rows' own quotients."""
+    from methods.ild.benchmark import run
+    rows = run("pointmass", batch=4, repeats=1, with_apg=False)
+    by = {r["what"]: r for r in rows}
+    assert {"forward", "ild", "ild_no_gn", "ild_remat", "chamfer", "step_forward",
+            "step_vjp", "policy_forward", "policy_vjp"} <= set(by)
+    r = rows[0]
+    assert r["update_over_forward"] == pytest.approx(
+        by["ild"]["seconds"] / by["forward"]["seconds"], rel=0.02, abs=2e-3)
+    assert r["step_vjp_over_forward"] == pytest.approx(
+        by["step_vjp"]["seconds"] / by["step_forward"]["seconds"], rel=0.02, abs=2e-3)
+    assert by["step_vjp"]["env_steps_per_s"] == pytest.approx(4 / by["step_vjp"]["seconds"],
+                                                              rel=0.02)
+    assert by["forward"]["env_steps_per_s"] == pytest.approx(4 * 128 / by["forward"]["seconds"],
+                                                             rel=0.02)

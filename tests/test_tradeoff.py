@@ -82,3 +82,17 @@ def test_cloth_substeps_trade_flags_the_unstable_setting_and_measures_error():
     # past the stability limit the cloth blows up: strained links, a failed expert
     assert df.loc[34, "max_strain"] > 1.5 and df.loc[34, "expert_success"] == 0.0
     assert (df.fwd_steps_per_s > 0).all()
+
+
+def test_budget_table_keeps_variants_apart(store):
+    """Runs of one method under two configs (variants) never pool: each gets its own row."""
+    curve = [{"train_s": 10, "normalized": 0.4}]
+    _ild(store, "a", 0, 0.45, {"truncation": 10}, secs=120, curve=curve)
+    _ild(store, "b", 0, 0.8, {"truncation": 1}, secs=120,
+         curve=[{"train_s": 10, "normalized": 0.8}])
+    df = tradeoff.budget_table(store, "hopper", minutes=(0.5, 2))
+    assert len(df) == 4 and df.method.str.startswith("ild (").all()
+    assert sorted(df[df.minutes == 0.5]["mean"]) == pytest.approx([0.4, 0.8])
+    # at a run's own budget its final score (0.45), not the curve's last evaluation (0.4)
+    assert sorted(df[df.minutes == 2]["mean"]) == pytest.approx([0.45, 0.8])
+    assert (df["count"] == 1).all()

@@ -2,13 +2,15 @@
 
     python -m methods.common.sb3_benchmark --task hopper --steps 1024 [--repeats 2]
                                            [--threads 2] [--out results/sb3_speed.csv]
+                                           [--methods dac,pwil,dac_disc3]
 
 For each method (dac, pwil) the plain learner is SB3's own TD3 with the SAME settings
 (networks, batch, update-to-data ratio, vectorized env) on the task's true reward; the method
 adds its imitation reward (and DAC its discriminator updates and absorbing states). Each
 measures env-steps/s over `steps` env steps after learning has started (warm-up excluded);
 runs alternate plain/method `repeats` times so machine drift hits both. Target: method /
-plain >= 0.8 (the imitation reward must not dominate the cost).
+plain >= 0.8 (the imitation reward must not dominate the cost). `dac_disc3` is DAC with
+one discriminator update per 3 TD3 updates (`disc_every=3`, not the original schedule).
 """
 from __future__ import annotations
 
@@ -56,7 +58,7 @@ def dac_arithmetic_ratio(obs_dim: int, act_dim: int, c: DACConfig = DACConfig())
                           + 3 * (actor + critic) / c.policy_delay)
     reward = c.batch_size * disc
     d_update = 3 * 2 * c.disc_batch * disc + (2 + 2 * 2) * c.disc_batch * disc
-    return td3 / (td3 + reward + d_update)
+    return td3 / (td3 + reward + d_update / c.disc_every)
 
 
 def _time(model, steps: int, warmup: int) -> float:
@@ -78,8 +80,8 @@ def builders(task_name: str):
         c = DACConfig()
         return TD3(**dac.td3_settings(BraxVecEnv(task.env, c.num_envs, T), c, 0)), c
 
-    def dac_method():
-        c = DACConfig()
+    def dac_method(disc_every=1):
+        c = DACConfig(disc_every=disc_every)
         return dac.make_learner(gated, T, demo, c, 0), c
 
     def pwil_plain():
@@ -90,7 +92,9 @@ def builders(task_name: str):
         c = PWILConfig()
         return pwil.make_learner(gated, T, demo, c, 0)[0], c
 
-    return {"dac": (dac_plain, dac_method), "pwil": (pwil_plain, pwil_method)}
+    return {"dac": (dac_plain, dac_method), "pwil": (pwil_plain, pwil_method),
+            # not the original schedule: one discriminator update per 3 TD3 updates
+            "dac_disc3": (dac_plain, lambda: dac_method(disc_every=3))}
 
 
 def main(argv=None):
@@ -115,8 +119,8 @@ def main(argv=None):
                 rates[kind].append(_time(model, args.steps, cfg.learning_starts + 256))
         p, m = np.median(rates["plain"]), np.median(rates["method"])
         task = make_task(args.task)
-        bound = (dac_arithmetic_ratio(task.obs_size, task.action_size) if name == "dac"
-                 else float("nan"))
+        bound = (dac_arithmetic_ratio(task.obs_size, task.action_size, cfg)
+                 if name.startswith("dac") else float("nan"))
         rows.append(dict(task=args.task, method=name, threads=args.threads, steps=args.steps,
                          plain_td3_steps_per_s=round(p, 1), method_steps_per_s=round(m, 1),
                          ratio=round(m / p, 3), arithmetic_ratio=round(bound, 3)))

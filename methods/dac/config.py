@@ -41,6 +41,10 @@ class DACConfig:
     updates_per_step: float = 1.0
     """Update-to-data ratio (the original: one TD3 and one discriminator update per env
     step, run as L updates after each L-step episode)."""
+    disc_every: int = 1
+    """One discriminator update per `disc_every` TD3 updates. 1 is the original schedule;
+    larger values trade discriminator training for speed (the discriminator update is ~0.6x
+    of a TD3 update's arithmetic: `dac_arithmetic_ratio` in methods/common/sb3_benchmark)."""
     # ---- one-demo setting ----
     trajectory_size: int = 50
     """The original subsamples each demo to ~50 transitions: subsampling rate
@@ -70,7 +74,7 @@ class DACConfig:
             raise ValueError(f"gamma must be < 1, got {self.gamma}")
         for name in ("disc_batch", "batch_size", "num_envs", "steps_per_collect", "policy_delay",
                      "trajectory_size", "report_every", "buffer_size",
-                     "actor_lr_halving_steps"):
+                     "actor_lr_halving_steps", "disc_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         check_collection(self)

@@ -197,6 +197,9 @@ class DACTD3(TD3):
         self.dac = dac
         self.critic_updates = 0
         self.actor_updates = 0
+        self.disc_updates = 0
+        self._disc_owed = 0.0
+        self._dstats: dict = {}
         self.metrics: dict = {}
 
     @torch.no_grad()
@@ -217,12 +220,18 @@ class DACTD3(TD3):
         actor_lr = cfg.actor_lr * 0.5 ** (self.num_timesteps // cfg.actor_lr_halving_steps)
         update_learning_rate(self.actor.optimizer, actor_lr)
         n_exp = len(self.expert_obs)
-        for k in range(gradient_steps):
+        # One discriminator update per `disc_every` TD3 updates, counted across calls.
+        self._disc_owed += gradient_steps / cfg.disc_every
+        n_disc = int(self._disc_owed + 1e-9)
+        self._disc_owed -= n_disc
+        for k in range(n_disc):
             pol = self.replay_buffer.sample(cfg.disc_batch)
             i = torch.randint(0, n_exp, (cfg.disc_batch,))
-            dstats = self.discriminator.update(pol.observations, pol.actions,
-                                               self.expert_obs[i], self.expert_actions[i],
-                                               stats=k == gradient_steps - 1)
+            self._dstats = self.discriminator.update(pol.observations, pol.actions,
+                                                     self.expert_obs[i], self.expert_actions[i],
+                                                     stats=k == n_disc - 1)
+        self.disc_updates += n_disc
+        dstats = self._dstats
         closs = aloss = torch.tensor(float("nan"))  # read once at the end (no per-step sync)
         for _ in range(gradient_steps):
             self._n_updates += 1
@@ -252,6 +261,7 @@ class DACTD3(TD3):
         self.metrics = {**dstats, "train/critic_loss": closs, "train/actor_loss": aloss,
                         "train/reward_mean": float(reward.mean()), "train/actor_lr": actor_lr,
                         "train/actor_updates": self.actor_updates,
+                        "train/disc_updates": self.disc_updates,
                         "train/absorbing_transitions": self.replay_buffer.absorbing_added}
         if not np.isfinite(aloss):  # before the actor starts: report no actor loss
             self.metrics.pop("train/actor_loss")

@@ -10,6 +10,9 @@ rows:
   ild_no_gn    the same without per-step gradient normalization
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
+  step_forward, step_vjp      ONE physics step of B envs, forward / forward + backward
+  policy_forward, policy_vjp  one policy sample for B envs, forward / forward + backward
+               (their env-steps/s count B steps per call)
   apg          brax's own APG trainer (brax.training.agents.apg), horizon 128, same network;
                its steady-state 'training/sps' (a later epoch, compile excluded)
 Each jitted function is compiled first (compile seconds reported) and then timed over
@@ -78,10 +81,10 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
     steps = batch * T
     rows = []
 
-    def row(name, sec, compile_s):
+    def row(name, sec, compile_s, n=steps):
         rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
-                     "what": name, "seconds": round(sec, 4),
-                     "env_steps_per_s": round(steps / sec, 1),
+                     "what": name, "seconds": float(f"{sec:.4g}"),
+                     "env_steps_per_s": round(n / sec, 1),
                      "compile_s": round(compile_s, 1)})
         print(rows[-1], flush=True)
 
@@ -94,6 +97,30 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
         state = TrainingState(params, opt.init(params), k[3], jnp.zeros((), jnp.int32))
         sec, c = _time(lambda s: update(s, None)[0], (state,), repeats)
         row(name, sec, c)
+    # Where an update's time goes, per control step of B envs: the physics step and the
+    # policy sample, each forward and as a VJP (forward + backward with a cotangent), so the
+    # backend's own reverse-mode cost shows beside ILD's.
+    s0 = jax.vmap(task.env.reset)(init_keys)
+    a0 = jnp.zeros((batch, task.action_size))
+    step = jax.vmap(task.env.step)
+    sec, c = _time(step, (s0, a0), 5 * repeats)
+    row("step_forward", sec, c, batch)
+
+    def step_vjp(s, a):
+        out, pull = jax.vjp(step, s, a)
+        return pull(jax.tree.map(jnp.ones_like, out))
+    sec, c = _time(step_vjp, (s0, a0), 5 * repeats)
+    row("step_vjp", sec, c, batch)
+    sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
+    pkeys = jax.random.split(k[3], batch)
+    sec, c = _time(sample, (params, s0.obs, pkeys), 5 * repeats)
+    row("policy_forward", sec, c, batch)
+
+    def policy_vjp(p, o):
+        out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
+        return pull(jnp.ones_like(out))
+    sec, c = _time(policy_vjp, (params, s0.obs), 5 * repeats)
+    row("policy_vjp", sec, c, batch)
     x = jax.random.normal(k[3], (batch, T, task.state_size))
     cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
         lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
@@ -105,7 +132,14 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
         row("apg", steps / sps, time.perf_counter() - t0)
     by = {r["what"]: r for r in rows}
     ratios = {"update_over_forward": by["ild"]["seconds"] / by["forward"]["seconds"],
-              "chamfer_share_of_update": by["chamfer"]["seconds"] / by["ild"]["seconds"]}
+              "chamfer_share_of_update": by["chamfer"]["seconds"] / by["ild"]["seconds"],
+              "step_vjp_over_forward": (by["step_vjp"]["seconds"]
+                                        / by["step_forward"]["seconds"]),
+              "policy_vjp_over_forward": (by["policy_vjp"]["seconds"]
+                                          / by["policy_forward"]["seconds"]),
+              # T physics steps forward and as VJPs: the physics' share of the update
+              "physics_vjp_share_of_update": (T * by["step_vjp"]["seconds"]
+                                              / by["ild"]["seconds"])}
     if "apg" in by:
         ratios["ild_over_apg_steps_per_s"] = (by["ild"]["env_steps_per_s"] /
                                               by["apg"]["env_steps_per_s"])
