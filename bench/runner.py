@@ -121,6 +121,17 @@ class RunContext:
     def elapsed(self) -> float:
         return self.clock.elapsed()
 
+    def spent(self, env_steps: int) -> float:
+        """Fraction of the budget used so far (the larger of time and env steps), in [0, 1];
+        for schedules that should finish within the budget."""
+        b = self.budget
+        parts = [0.0]
+        if b.seconds is not None:
+            parts.append(self.clock.elapsed() / b.seconds)
+        if b.env_steps is not None:
+            parts.append(env_steps / b.env_steps)
+        return min(max(parts), 1.0)
+
     def should_stop(self, env_steps: int) -> bool:
         """True once the budget is spent: the method must then return its final policy."""
         b = self.budget

@@ -249,3 +249,49 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
                                                               rel=0.02)
     assert by["forward"]["env_steps_per_s"] == pytest.approx(4 * 128 / by["forward"]["seconds"],
                                                              rel=0.02)
+
+
+def test_budget_lr_schedule_decays_over_the_budget_spent(store):
+    """lr_schedule='budget': update k of 15 (env-step budget) runs at lr0 + k/15 (lr_end -
+    lr0); 'linear' decays over `updates` (5000) and has barely moved after 15."""
+    from methods.ild.train import budget_lr
+    cfg = ILDConfig(lr_schedule="budget")
+    assert budget_lr(cfg, 0.0) == 1e-3 and budget_lr(cfg, 1.0) == pytest.approx(1e-5)
+    assert budget_lr(cfg, 0.5) == pytest.approx(0.505e-3)
+    assert budget_lr(cfg, 7.0) == pytest.approx(1e-5)  # clipped at the end
+    rec, _ = execute(prepare(_ild(0, bc_updates=0, lr_schedule="budget")), store,
+                     log=lambda s: None)
+    assert rec["status"] == "ok"
+    assert rec["train_metrics"]["train/lr"] == pytest.approx(1e-3 + 14 / 15 * (1e-5 - 1e-3),
+                                                             rel=1e-5)
+    lin, _ = execute(prepare(_ild(0, bc_updates=0)), store, log=lambda s: None)
+    assert lin["train_metrics"]["train/lr"] == pytest.approx(1e-3 - 14 / 5000 * 0.99e-3,
+                                                             rel=1e-5)
+
+
+def test_update_equals_optax_adam_on_the_same_gradient():
+    """The update's optimizer (clip, Adam direction, then the scheduled step) is optax's
+    clip + adam(schedule), step for step."""
+    import optax
+    from methods.common.policy import ObsNorm, TanhGaussianPolicy
+    from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
+    task = make_task("pointmass")
+    cfg = ILDConfig(num_envs=4, hidden=(16,), updates=3, lr_end=1e-4)
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, cfg.hidden)
+    goals = jnp.zeros((1, task.episode_length, task.state_size))
+    norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))
+    params = policy.init(jax.random.PRNGKey(0), ObsNorm(jnp.zeros(task.obs_size),
+                                                        jnp.ones(task.obs_size)))
+    update, opt, lr = make_update(task, policy, goals, norm, cfg, jax.random.PRNGKey(1))
+    loss_fn = make_rollout_loss(task, policy, goals, norm, cfg)
+    ref = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr))
+    s = initial_state(params, opt, jax.random.PRNGKey(2), cfg)
+    p_ref, o_ref = params, ref.init(params)
+    for _ in range(3):
+        key, k_roll, k_init = jax.random.split(s.key, 3)
+        g = jax.grad(lambda p: loss_fn(p, k_roll, jax.random.split(k_init, 4))[0])(p_ref)
+        u, o_ref = ref.update(g, o_ref, p_ref)
+        p_ref = optax.apply_updates(p_ref, u)
+        s, _ = jax.jit(update)(s, None)
+        for a, b in zip(jax.tree.leaves(s.params), jax.tree.leaves(p_ref)):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
-from methods.ild.train import StateNorm, TrainingState, make_rollout_loss, make_update
+from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
 from tasks import make_task
 
 
@@ -94,7 +94,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
     for name, cfg in (("ild", base), ("ild_no_gn", dataclasses.replace(
             base, grad_normalization=False)), ("ild_remat", dataclasses.replace(base, remat=True))):
         update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
-        state = TrainingState(params, opt.init(params), k[3], jnp.zeros((), jnp.int32))
+        state = initial_state(params, opt, k[3], cfg)
         sec, c = _time(lambda s: update(s, None)[0], (state,), repeats)
         row(name, sec, c)
     # Where an update's time goes, per control step of B envs: the physics step and the

@@ -6,7 +6,7 @@ import dataclasses
 
 LOSSES = ("chamfer", "l2")
 DISTANCES = ("rms", "sq")
-SCHEDULES = ("linear", "constant")
+SCHEDULES = ("linear", "constant", "budget")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -21,7 +21,9 @@ class ILDConfig:
     """Adam learning rate at the start (A.5)."""
     lr_schedule: str = "linear"
     """'linear': decay to lr_end over `updates`, as the original intended (its schedule was
-    dead code: the compiled update closed over the first optimizer); 'constant'."""
+    dead code: the compiled update closed over the first optimizer); 'budget': decay to
+    lr_end over the fraction of the run's budget spent (or over `updates`, if sooner), so the
+    decay completes when a budget stops the run long before `updates`; 'constant'."""
     lr_end: float = 1e-5
     """Final learning rate of the linear schedule (the original's value)."""
     max_grad_norm: float = 0.3

@@ -27,6 +27,9 @@ class TrainingState:
     opt_state: optax.OptState
     key: jax.Array
     step: jax.Array
+    lr: jax.Array
+    """Learning rate of the next update under lr_schedule='budget' (set by the host from the
+    fraction of the budget spent); unused by the step-count schedules."""
 
 
 @flax.struct.dataclass
@@ -92,11 +95,12 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
 def make_update(task, policy, goals, norm, config: ILDConfig, reset_key):
     """One ILD update as a pure function (TrainingState, _) -> (TrainingState, metrics), for
     lax.scan; also used by the speed benchmark. Returns (update, optimizer, schedule)."""
-    if config.lr_schedule == "linear":
-        lr = optax.linear_schedule(config.learning_rate, config.lr_end, config.updates)
-    else:
+    if config.lr_schedule == "constant":
         lr = optax.constant_schedule(config.learning_rate)
-    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
+    else:  # 'budget' also decays over `updates` if those run out before the budget
+        lr = optax.linear_schedule(config.learning_rate, config.lr_end, config.updates)
+    # Adam's direction, then the step size (optax.adam(lr) is the same two transforms).
+    opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.scale_by_adam())
     loss_fn = make_rollout_loss(task, policy, goals, norm, config)
     fixed_init = jax.random.split(reset_key, config.num_envs)
 
@@ -111,13 +115,27 @@ def make_update(task, policy, goals, norm, config: ILDConfig, reset_key):
         g = jax.tree.map(lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), g)
         raw = optax.global_norm(g)
         upd, opt_state = opt.update(g, s.opt_state, s.params)
+        rate = s.lr if config.lr_schedule == "budget" else lr(s.step)
+        upd = jax.tree.map(lambda u: u * -rate, upd)
         metrics = {**aux, "grad/norm_raw": raw,
                    "grad/norm_clipped": jnp.minimum(raw, config.max_grad_norm),
-                   "grad/nonfinite": nonfinite.astype(jnp.float32), "train/lr": lr(s.step)}
+                   "grad/nonfinite": nonfinite.astype(jnp.float32), "train/lr": rate}
         return TrainingState(optax.apply_updates(s.params, upd), opt_state, key,
-                             s.step + 1), metrics
+                             s.step + 1, s.lr), metrics
 
     return update, opt, lr
+
+
+def initial_state(params, opt, key, config: ILDConfig) -> TrainingState:
+    return TrainingState(params, opt.init(params), key, jnp.zeros((), jnp.int32),
+                         jnp.float32(config.learning_rate))
+
+
+def budget_lr(config: ILDConfig, spent: float) -> float:
+    """lr_schedule='budget': linear from learning_rate to lr_end over the fraction of the
+    run's budget spent (time or env steps, whichever runs out first)."""
+    f = min(max(spent, 0.0), 1.0)
+    return config.learning_rate + f * (config.lr_end - config.learning_rate)
 
 
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
@@ -156,10 +174,13 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
 
     update, opt, lr = make_update(task, policy, goals, norm, config, reset_key)
     chunk = jax.jit(lambda s: jax.lax.scan(update, s, None, length=config.chunk))
-    state = TrainingState(params, opt.init(params), loop_key, jnp.zeros((), jnp.int32))
+    state = initial_state(params, opt, loop_key, config)
     env_steps, done = 0, 0
     per_update = config.num_envs * T
     while done < config.updates and not ctx.should_stop(env_steps):
+        if config.lr_schedule == "budget":
+            spent = max(ctx.spent(env_steps), done / config.updates)
+            state = state.replace(lr=jnp.float32(budget_lr(config, spent)))
         t0 = time.perf_counter()
         state, m = chunk(state)
         m = jax.device_get(m)
