@@ -22,7 +22,6 @@ Goals are random states of the task's matched-state size: speed does not depend 
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import os
 import time
@@ -136,10 +135,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
               "step_vjp_over_forward": (by["step_vjp"]["seconds"]
                                         / by["step_forward"]["seconds"]),
               "policy_vjp_over_forward": (by["policy_vjp"]["seconds"]
-                                          / by["policy_forward"]["seconds"]),
-              # T physics steps forward and as VJPs: the physics' share of the update
-              "physics_vjp_share_of_update": (T * by["step_vjp"]["seconds"]
-                                              / by["ild"]["seconds"])}
+                                          / by["policy_forward"]["seconds"])}
     if "apg" in by:
         ratios["ild_over_apg_steps_per_s"] = (by["ild"]["env_steps_per_s"] /
                                               by["apg"]["env_steps_per_s"])
@@ -158,13 +154,12 @@ def main(argv=None):
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
     rows = run(a.task, a.batch, a.repeats, not a.no_apg)
-    if a.out:
-        new = not os.path.exists(a.out)
-        with open(a.out, "a", newline="") as f:
-            w = csv.DictWriter(f, list(rows[0]))
-            if new:
-                w.writeheader()
-            w.writerows(rows)
+    if a.out:  # earlier rows kept; columns added since stay empty in them
+        import pandas as pd
+        df = pd.DataFrame(rows)
+        if os.path.exists(a.out):
+            df = pd.concat([pd.read_csv(a.out), df], ignore_index=True)
+        df.to_csv(a.out, index=False)
 
 
 if __name__ == "__main__":
