@@ -38,6 +38,14 @@ def write_table(df: pd.DataFrame, base: str, floatfmt: str = ".4g") -> list[str]
     return [base + ".csv", base + ".md"]
 
 
+def append_csv(rows: list[dict], path: str) -> None:
+    """Add rows to a CSV, keeping its earlier rows (columns added since stay empty in them)."""
+    df = pd.DataFrame(rows)
+    if os.path.exists(path):
+        df = pd.concat([pd.read_csv(path), df], ignore_index=True)
+    df.to_csv(path, index=False)
+
+
 def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
     """Rows of the variant with the most scored runs per (task, method)."""
     scored = frame[frame.status.isin(["ok", "diverged"])]

@@ -96,3 +96,15 @@ def test_budget_table_keeps_variants_apart(store):
     # at a run's own budget its final score (0.45), not the curve's last evaluation (0.4)
     assert sorted(df[df.minutes == 2]["mean"]) == pytest.approx([0.45, 0.8])
     assert (df["count"] == 1).all()
+
+
+def test_append_csv_keeps_earlier_rows_when_columns_are_added(tmp_path):
+    """The benchmarks' CSVs: a later run's new column is empty in the earlier rows."""
+    import pandas as pd
+    from bench.report import append_csv
+    path = str(tmp_path / "speed.csv")
+    append_csv([{"what": "ild", "seconds": 0.5}], path)
+    append_csv([{"what": "ild", "seconds": 0.6, "ratio": 7.0}], path)
+    df = pd.read_csv(path)
+    assert list(df.columns) == ["what", "seconds", "ratio"]
+    assert df.seconds.tolist() == [0.5, 0.6] and pd.isna(df.ratio[0]) and df.ratio[1] == 7.0

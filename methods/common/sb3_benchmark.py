@@ -108,6 +108,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     set_torch_threads(args.threads)
     rows = []
+    task = make_task(args.task)
     for name, (plain, method) in builders(args.task).items():
         if name not in args.methods.split(","):
             continue
@@ -118,7 +119,6 @@ def main(argv=None):
                 model, cfg = build()
                 rates[kind].append(_time(model, args.steps, cfg.learning_starts + 256))
         p, m = np.median(rates["plain"]), np.median(rates["method"])
-        task = make_task(args.task)
         bound = (dac_arithmetic_ratio(task.obs_size, task.action_size, cfg)
                  if name.startswith("dac") else float("nan"))
         rows.append(dict(task=args.task, method=name, threads=args.threads, steps=args.steps,
@@ -128,13 +128,8 @@ def main(argv=None):
               f"env-steps/s, ratio {m / p:.2f} (target >= 0.8; threads {args.threads}; "
               f"the arithmetic alone allows {bound:.2f})", flush=True)
     if args.out:
-        import os
-
-        import pandas as pd
-        df = pd.DataFrame(rows)
-        if os.path.exists(args.out):  # earlier rows kept (columns added since stay empty)
-            df = pd.concat([pd.read_csv(args.out), df], ignore_index=True)
-        df.to_csv(args.out, index=False)
+        from bench.report import append_csv
+        append_csv(rows, args.out)
     return rows
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import time
 
 import jax
@@ -154,12 +153,9 @@ def main(argv=None):
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
     rows = run(a.task, a.batch, a.repeats, not a.no_apg)
-    if a.out:  # earlier rows kept; columns added since stay empty in them
-        import pandas as pd
-        df = pd.DataFrame(rows)
-        if os.path.exists(a.out):
-            df = pd.concat([pd.read_csv(a.out), df], ignore_index=True)
-        df.to_csv(a.out, index=False)
+    if a.out:
+        from bench.report import append_csv
+        append_csv(rows, a.out)
 
 
 if __name__ == "__main__":
