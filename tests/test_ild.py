@@ -125,6 +125,31 @@ def test_rollout_gradient_finite_at_the_extremes(kw):
     assert np.isfinite(v) and np.isfinite(flat).all() and np.abs(flat).sum() > 0
 
 
+def test_observation_normalizer_is_frozen_in_ild_and_bc():
+    """The policy's normalizer statistics live in params (a saved policy carries them) but
+    are fixed: zero gradient from the ILD loss and the BC loss, and unchanged bit for bit by
+    a BC warm start (before bc v2 / ild v4 Adam moved them: hopper's std 1.0 -> 0.81)."""
+    from methods.common.policy import bc_loss
+    from methods.ild.train import bc_warm_start
+    loss, params, keys = _setup(_cfg())
+    g = jax.grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0])(params)
+    assert np.abs(np.ravel(g["net"]["params"]["hidden_0"]["kernel"])).sum() > 0
+    assert not np.any(g["norm"].mean) and not np.any(g["norm"].std)
+    task = make_task("pointmass")
+    demo = load_demo(task.spec.demo_path, task)
+    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)
+    act = jnp.asarray(demo.actions).reshape(-1, task.action_size)
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, (32, 32))
+    p0 = policy.init(jax.random.PRNGKey(0), ObsNorm.fit(obs, 1.0))
+    gb = jax.grad(lambda p: bc_loss(policy, p, obs, act, jax.random.PRNGKey(3), 4))(p0)
+    assert not np.any(gb["norm"].mean) and not np.any(gb["norm"].std)
+    p1, _ = bc_warm_start(policy, p0, obs, act, _cfg(bc_updates=50), jax.random.PRNGKey(4))
+    np.testing.assert_array_equal(p1["norm"].mean, p0["norm"].mean)
+    np.testing.assert_array_equal(p1["norm"].std, p0["norm"].std)
+    assert not np.array_equal(p1["net"]["params"]["hidden_0"]["kernel"],
+                              p0["net"]["params"]["hidden_0"]["kernel"])
+
+
 def test_tanh_loss_saturates_to_a_zero_gradient():
     """Why tanh_loss is off by default: far from the demo the original's tanh(L) is exactly
     1 in float32 and the gradient exactly 0; without tanh the same point has a gradient."""

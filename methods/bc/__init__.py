@@ -10,4 +10,5 @@ METHOD = MethodSpec(
     uses=Uses(demo_states=True, demo_actions=True),
     description="behaviour cloning: tanh-Gaussian MLP fit to the demo's (o_t, a_t) pairs",
     presets=PRESETS,
+    version="2",  # 2: the observation normalizer is frozen (it had gradients)
 )

@@ -56,7 +56,11 @@ class TanhGaussianPolicy:
         return {"net": self._net.init(key), "norm": norm}
 
     def logits(self, params: dict, obs: jax.Array) -> jax.Array:
-        return self._net.apply(None, params["net"], params["norm"](obs))
+        # The normalizer's statistics are fixed: they sit in `params` so that a saved policy
+        # carries them, but no optimizer may move them (before ildbench bc v2 / ild v4 they
+        # got gradients, and BC's 1000 Adam steps moved hopper's std floor of 1.0 to 0.81).
+        norm = jax.lax.stop_gradient(params["norm"])
+        return self._net.apply(None, params["net"], norm(obs))
 
     def sample(self, params: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
         """Reparameterized tanh-Gaussian sample (differentiable in params and obs)."""

@@ -13,5 +13,5 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
-    version="3",  # 3: mask_after_done is an option (off by default)
+    version="4",  # 3: mask_after_done option; 4: observation normalizer frozen
 )
