@@ -290,6 +290,16 @@ def _add_run_options(p, budget_default=None):
                    help="run cells in this process (default: a fresh child process per cell)")
 
 
+_OUT_HELP = ("where tables and plots go (default: the store's parent when the store is a "
+             "'.../runs' folder, e.g. results/grid for results/grid/runs; else results)")
+
+
+def default_out(store: str) -> str:
+    """Tables of the store `X/runs` go to X, so a side sweep never overwrites results/'s."""
+    parent, base = os.path.split(os.path.normpath(store))
+    return parent if base == "runs" and parent else "results"
+
+
 def build_parser():
     ap = argparse.ArgumentParser(prog="ildbench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -312,7 +322,7 @@ def build_parser():
     p.add_argument("--tasks", nargs="+", required=True)
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed-start", type=int, default=0)
-    p.add_argument("--out", default="results")
+    p.add_argument("--out", default=None, help=_OUT_HELP)
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local: one cell at a time in this process; ray: cells as Ray tasks")
     p.add_argument("--ray-address", default=None,
@@ -329,7 +339,7 @@ def build_parser():
     _add_run_options(p, budget_default="60s")
     p.set_defaults(fn=cmd_quick)
     p = sub.add_parser("leaderboard", help="aggregate the store into a table")
-    p.add_argument("--out", default="results")
+    p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_leaderboard)
     p = sub.add_parser("check", help="CI regression gate: canary suite vs committed reference")
     p.add_argument("--update", action="store_true",
@@ -367,7 +377,7 @@ def build_parser():
     p.set_defaults(fn=cmd_ablate, force=False)  # for _run_all
     p = sub.add_parser("plot-robustness", help="normalized score vs perturbation magnitude")
     p.add_argument("--task", required=True)
-    p.add_argument("--out", default="results")
+    p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_plot_robustness)
     p = sub.add_parser("expert", help="expert training and demos")
     esub = p.add_subparsers(dest="expert_cmd", required=True)
@@ -394,6 +404,9 @@ def main(argv=None) -> int:
     if args.store is None:
         from bench.store import DEFAULT_ROOT
         args.store = DEFAULT_ROOT
+    if getattr(args, "out", "") is None and args.cmd in ("sweep", "leaderboard",
+                                                           "plot-robustness"):
+        args.out = default_out(args.store)
     if args.cmd in ("run", "sweep", "quick") and args.budget is None and \
             args.budget_steps is None:
         print("error: give a budget: --budget 300s (wall-clock) and/or --budget-steps N",

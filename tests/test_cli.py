@@ -58,6 +58,17 @@ def test_run_then_leaderboard(capsys, tmp_path):
     assert "plan: 2 cells, 1 finished, 1 to run" in out
     lines = [l for l in out.splitlines() if "pointmass" in l]
     assert len(lines) == 2 and lines[0].endswith("done") and lines[1].endswith("to run")
+    # without --out, a store 'X/runs' reports into X (here tmp_path), never into results/
+    code, out, _ = _run(capsys, "leaderboard", "--store", store)
+    assert code == 0 and f"written: {tmp_path / 'leaderboard.md'}" in out
+
+
+def test_default_report_folder_is_the_stores_parent():
+    from bench.cli import default_out
+    assert default_out("results/grid/runs") == "results/grid"
+    assert default_out("results/grid/runs/") == "results/grid"
+    assert default_out("runs") == "results"
+    assert default_out("/tmp/mystore") == "results"
 
 
 def test_listing_commands(capsys):

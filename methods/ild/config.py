@@ -47,8 +47,9 @@ class ILDConfig:
     """BC warm-start updates (Alg. 1 line 3; the original ran 1000); 0 disables it."""
     bc_samples: int = 16
     """Reparameterized samples per demo state in the BC loss."""
-    obs_std_min: float = 1.0
-    """Observation-normalizer std floor (see methods/bc/config.py for the measurement)."""
+    obs_std_min: float = 0.3
+    """Observation-normalizer std floor, as BC's (the warm start; methods/bc/config.py has
+    the measurement)."""
     state_std_min: float = 0.1
     """Std floor of the matched-state normalizer of the loss: the demo's spread defines the
     metric, and features it barely varies are not amplified past 1/0.1."""
