@@ -61,11 +61,11 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s"),
                      "auc": curves.auc(curve, horizon) if horizon else None,
                      "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
-                     "curve": curve, "horizon": horizon})
+                     "curve": curve, "horizon": horizon, "started": r.get("started")})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
-                                       "curve", "horizon"])
+                                       "curve", "horizon", "started"])
 
 
 def _mean(col: pd.Series) -> float:

@@ -7,8 +7,9 @@
     curves_<task>.png       normalized score vs training seconds (mean, 95% CI band)
     curves_aggregate.png    mean over tasks vs fraction of the budget
 
-Aggregates use one variant per (method, task): the one with the most scored seeds (a store
-may hold older or differently-configured runs). They refuse unequal seed counts: the report
+Aggregates use one variant per (method, task): the one with the most scored seeds, and
+among equals the one with the newest run (a store may hold older or differently-configured
+runs). They refuse unequal seed counts: the report
 then says which cell is short instead of averaging unequal strata.
 """
 from __future__ import annotations
@@ -47,12 +48,17 @@ def append_csv(rows: list[dict], path: str) -> None:
 
 
 def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
-    """Rows of the variant with the most scored runs per (task, method)."""
+    """Rows of the variant with the most scored runs per (task, method); ties go to the
+    variant with the newest run (then the variant id, so the choice is deterministic)."""
     scored = frame[frame.status.isin(["ok", "diverged"])]
     if scored.empty:
         return scored
-    sizes = scored.groupby(["task", "method", "variant"]).size().reset_index(name="n")
-    best = sizes.sort_values("n", ascending=False).drop_duplicates(["task", "method"])
+    started = (scored["started"] if "started" in scored else pd.Series("", scored.index))
+    sizes = (scored.assign(newest=started.fillna("").astype(str))
+             .groupby(["task", "method", "variant"])
+             .agg(n=("seed", "size"), newest=("newest", "max")).reset_index())
+    best = sizes.sort_values(["n", "newest", "variant"], ascending=[False, False, True],
+                             kind="stable").drop_duplicates(["task", "method"])
     keep = set(zip(best.task, best.method, best.variant))
     return scored[[k in keep for k in zip(scored.task, scored.method, scored.variant)]]
 

@@ -17,9 +17,11 @@
 
 Every part writes results/tradeoff/<task>_<part>.csv/.md and a PNG.
 
-Budget part: a run's anytime score at t is the score of the policy it held at t. For the
-methods here the learning-rate schedules run over a fixed number of updates/epochs, not over
-the budget, so a run stopped by a budget t is the same run as a longer one read at t.
+Budget part: a run's anytime score at t is the score of the policy it held at t. Where a
+learning-rate schedule runs over a fixed number of updates/epochs, a run stopped by a budget
+t is the same run as a longer one read at t. A schedule over the budget itself (ILD's
+default `lr_schedule='budget'`) makes a different run for each budget: such runs are read at
+their own budget only.
 """
 from __future__ import annotations
 
@@ -173,7 +175,10 @@ def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFram
         secs = (r.get("budget") or {}).get("seconds")
         if not secs:
             continue
+        own_budget_only = (r.get("config") or {}).get("lr_schedule") == "budget"
         for m in minutes:
+            if own_budget_only and abs(secs - 60 * m) >= 1e-6:
+                continue
             if secs + 1e-6 >= 60 * m:
                 # At the run's own budget: its final score (the leaderboard's number, on the
                 # final evaluation's episodes); before it: the anytime curve.

@@ -277,9 +277,11 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
 
 
 def test_budget_lr_schedule_decays_over_the_budget_spent(store):
-    """lr_schedule='budget': update k of 15 (env-step budget) runs at lr0 + k/15 (lr_end -
-    lr0); 'linear' decays over `updates` (5000) and has barely moved after 15."""
+    """lr_schedule='budget' (the default): update k of 15 (env-step budget) runs at
+    lr0 + k/15 (lr_end - lr0); 'linear' decays over `updates` (5000) and has barely moved
+    after 15."""
     from methods.ild.train import budget_lr
+    assert ILDConfig().lr_schedule == "budget"
     cfg = ILDConfig(lr_schedule="budget")
     assert budget_lr(cfg, 0.0) == 1e-3 and budget_lr(cfg, 1.0) == pytest.approx(1e-5)
     assert budget_lr(cfg, 0.5) == pytest.approx(0.505e-3)
@@ -289,7 +291,8 @@ def test_budget_lr_schedule_decays_over_the_budget_spent(store):
     assert rec["status"] == "ok"
     assert rec["train_metrics"]["train/lr"] == pytest.approx(1e-3 + 14 / 15 * (1e-5 - 1e-3),
                                                              rel=1e-5)
-    lin, _ = execute(prepare(_ild(0, bc_updates=0)), store, log=lambda s: None)
+    lin, _ = execute(prepare(_ild(0, bc_updates=0, lr_schedule="linear")), store,
+                     log=lambda s: None)
     assert lin["train_metrics"]["train/lr"] == pytest.approx(1e-3 - 14 / 5000 * 0.99e-3,
                                                              rel=1e-5)
 
@@ -301,7 +304,7 @@ def test_update_equals_optax_adam_on_the_same_gradient():
     from methods.common.policy import ObsNorm, TanhGaussianPolicy
     from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
     task = make_task("pointmass")
-    cfg = ILDConfig(num_envs=4, hidden=(16,), updates=3, lr_end=1e-4)
+    cfg = ILDConfig(num_envs=4, hidden=(16,), updates=3, lr_end=1e-4, lr_schedule="linear")
     policy = TanhGaussianPolicy(task.obs_size, task.action_size, cfg.hidden)
     goals = jnp.zeros((1, task.episode_length, task.state_size))
     norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))

@@ -61,6 +61,27 @@ def test_different_configs_are_not_pooled(store):
     assert sorted(board.seeds.tolist()) == [1, 2] and board.variant.nunique() == 2
 
 
+def test_aggregates_take_the_variant_with_most_seeds_then_the_newest(store):
+    from bench.report import main_variants
+    runs = (("a", 0, 1e-3, "2026-01-01"), ("b", 1, 1e-3, "2026-01-02"),
+            ("c", 0, 1e-4, "2026-03-01"), ("d", 1, 1e-4, "2026-02-01"))
+    for rid, seed, lr, started in runs:
+        store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
+                     "status": "ok", "final_normalized": lr * 1000, "final_return": 1.0,
+                     "config": {"lr": lr}, "method_version": "1", "preset": None,
+                     "uses": {}, "reference_method": False, "started": started,
+                     "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                                "evals": 10}})
+    frame = lb.records_frame(store)
+    assert main_variants(frame).normalized.tolist() == [0.1, 0.1]  # tie: 2 seeds each, newest
+    store.write({"run_id": "e", "task": "pointmass", "method": "m", "seed": 2, "status": "ok",
+                 "final_normalized": 1.0, "final_return": 1.0, "config": {"lr": 1e-3},
+                 "method_version": "1", "preset": None, "uses": {}, "reference_method": False,
+                 "started": "2025-01-01", "budget": {"seconds": 60.0, "env_steps": None,
+                                                     "charge_compile": True, "evals": 10}})
+    assert sorted(main_variants(lb.records_frame(store)).normalized) == [1.0, 1.0, 1.0]
+
+
 def _full(store, rid, method, task, seed, norm, curve, transfer=None, ref=False, secs=60.0):
     store.write({"run_id": rid, "task": task, "method": method, "seed": seed, "status": "ok",
                  "final_normalized": norm, "final_return": norm * 100, "curve": curve,

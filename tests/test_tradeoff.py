@@ -98,6 +98,15 @@ def test_budget_table_keeps_variants_apart(store):
     assert (df["count"] == 1).all()
 
 
+def test_budget_table_reads_budget_scheduled_runs_at_their_own_budget_only(store):
+    """A learning rate that decays over the budget makes a different run per budget: its
+    curve at 0.5 minutes is not what a 0.5-minute budget would have made."""
+    curve = [{"train_s": 10, "normalized": 0.4}, {"train_s": 100, "normalized": 0.7}]
+    _ild(store, "a", 0, 0.75, {"lr_schedule": "budget"}, secs=120, curve=curve)
+    df = tradeoff.budget_table(store, "hopper", minutes=(0.5, 1, 2))
+    assert df.minutes.tolist() == [2] and df["mean"].tolist() == pytest.approx([0.75])
+
+
 def test_append_csv_keeps_earlier_rows_when_columns_are_added(tmp_path):
     """The benchmarks' CSVs: a later run's new column is empty in the earlier rows."""
     import pandas as pd
