@@ -53,8 +53,7 @@ def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
     scored = frame[frame.status.isin(["ok", "diverged"])]
     if scored.empty:
         return scored
-    started = (scored["started"] if "started" in scored else pd.Series("", scored.index))
-    sizes = (scored.assign(newest=started.fillna("").astype(str))
+    sizes = (scored.assign(newest=scored.started.fillna("").astype(str))
              .groupby(["task", "method", "variant"])
              .agg(n=("seed", "size"), newest=("newest", "max")).reset_index())
     best = sizes.sort_values(["n", "newest", "variant"], ascending=[False, False, True],

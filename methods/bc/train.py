@@ -5,12 +5,12 @@ import functools
 
 import flax.struct
 import jax
-import jax.numpy as jnp
 import optax
 
 from bench.api import Policy, TrainResult
 from methods.bc.config import BCConfig
-from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_optimizer, make_bc_step
+from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc_pairs,
+                                   make_bc_step)
 
 
 @flax.struct.dataclass
@@ -21,8 +21,7 @@ class TrainingState:
 
 
 def train(task, demo, config: BCConfig, ctx, seed: int) -> TrainResult:
-    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)        # o_0..o_{T-1}
-    actions = jnp.asarray(demo.actions).reshape(-1, task.action_size)     # a_0..a_{T-1}
+    obs, actions = bc_pairs(task, demo)
     policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
     # init_key: network weights; loop_key: the per-update sampling noise.
     init_key, loop_key = jax.random.split(jax.random.PRNGKey(seed))

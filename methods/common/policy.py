@@ -75,6 +75,13 @@ class TanhGaussianPolicy:
         return self.mode(params, obs) if deterministic else self.sample(params, obs, key)
 
 
+def bc_pairs(task, demo) -> tuple[jax.Array, jax.Array]:
+    """The demo's BC pairs flattened over demos: observations o_0..o_{T-1} (N, obs_size)
+    with the actions a_0..a_{T-1} (N, action_size) taken in them."""
+    return (jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size),
+            jnp.asarray(demo.actions).reshape(-1, task.action_size))
+
+
 def bc_loss(policy: TanhGaussianPolicy, params: dict, obs: jax.Array, actions: jax.Array,
             key: jax.Array, samples: int) -> jax.Array:
     """The original BC warm start: squared error of reparameterized samples to the demo

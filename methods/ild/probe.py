@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from methods.common.policy import ObsNorm, TanhGaussianPolicy
+from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_pairs
 from methods.ild.config import TASK_OVERRIDES, ILDConfig
 from methods.ild.train import StateNorm, bc_warm_start, make_rollout_loss
 
@@ -39,19 +39,18 @@ def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
           positions_only: bool = False) -> dict:
     """Returns {'loss', 'grad_norm', 'params', 'other_keys', 'fd': {eps: value},
     'adam': {lr: loss after the first step}}."""
-    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)
-    actions = jnp.asarray(demo.actions).reshape(-1, task.action_size)
-    ds = jnp.asarray(demo.states[:, 1:])
-    flat = ds.reshape(-1, ds.shape[-1])
-    std = jnp.sqrt(jnp.clip(flat.var(0), config.state_std_min ** 2, 1e6))
+    obs, actions = bc_pairs(task, demo)
+    ds = jnp.asarray(demo.states[:, 1:])                                     # s_1..s_T
+    norm = StateNorm.fit(ds, config.state_std_min)
     if positions_only:  # cloth: per particle (x, y, z, vx, vy, vz), then 8 gripper numbers
         if task.spec.name != "cloth":
             raise ValueError("--positions-only is for the cloth task's state layout")
-        n = (std.shape[0] - 8) // 6
+        n = (norm.std.shape[0] - 8) // 6
         vel = np.concatenate([np.tile([False] * 3 + [True] * 3, n), np.zeros(8, bool)])
-        std = jnp.where(jnp.asarray(vel), 1e6, std)  # velocities weigh ~0 in the distance
-    norm = StateNorm(flat.mean(0), std)
+        # velocities weigh ~0 in the distance
+        norm = norm.replace(std=jnp.where(jnp.asarray(vel), 1e6, norm.std))
     policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
+    # the same key split as train(): the probe starts where a run with this seed starts
     init_key, bc_key, _, reset_key = jax.random.split(jax.random.PRNGKey(seed), 4)
     params = policy.init(init_key, ObsNorm.fit(obs, config.obs_std_min))
     if config.bc_updates > 0:

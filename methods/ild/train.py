@@ -16,7 +16,8 @@ import numpy as np
 import optax
 
 from bench.api import Policy, TrainResult
-from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_optimizer, make_bc_step
+from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc_pairs,
+                                   make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 
@@ -41,6 +42,13 @@ class StateNorm:
 
     def __call__(self, s):
         return (s - self.mean) / self.std
+
+    @staticmethod
+    def fit(states: jax.Array, std_min: float) -> "StateNorm":
+        """Statistics of `states` (..., D), the std floored at `std_min`."""
+        flat = states.reshape(-1, states.shape[-1])
+        return StateNorm(mean=flat.mean(0),
+                         std=jnp.sqrt(jnp.clip(flat.var(0), std_min ** 2, 1e6)))
 
 
 def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: StateNorm,
@@ -154,11 +162,9 @@ def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
 
 def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
     T = task.episode_length
-    obs = jnp.asarray(demo.obs[:, :-1]).reshape(-1, task.obs_size)          # o_0..o_{T-1}
+    obs, actions = bc_pairs(task, demo)
     demo_states = jnp.asarray(demo.states[:, 1:])                            # s_1..s_T
-    flat = demo_states.reshape(-1, demo_states.shape[-1])
-    norm = StateNorm(mean=flat.mean(0),
-                     std=jnp.sqrt(jnp.clip(flat.var(0), config.state_std_min ** 2, 1e6)))
+    norm = StateNorm.fit(demo_states, config.state_std_min)
     goals = norm(demo_states)
     policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
     # init_key: network weights; bc_key: BC sampling noise; loop_key: rollouts' action noise;
@@ -168,7 +174,6 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
     act = policy.act
 
     if config.bc_updates > 0:
-        actions = jnp.asarray(demo.actions).reshape(-1, task.action_size)
         params, bc_final = bc_warm_start(policy, params, obs, actions, config, bc_key)
         ctx.report(Policy(act, params), 0, {"bc/loss": bc_final}, force_eval=True)
 
