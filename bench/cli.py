@@ -7,6 +7,7 @@
     ildbench quick                      the main job: a quick leaderboard on the defaults
     ildbench leaderboard                table, aggregates and curves from the store
     ildbench check [--update]           CI regression gate (canary suite vs reference)
+    ildbench reindex --store S          rename records to the current run-id scheme
     ildbench render --task T --method M HTML: expert demo next to the method's final policy
     ildbench tradeoff backends|budget|ild|substeps --task T   speed-accuracy tables, plots
     ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
@@ -124,13 +125,14 @@ def _run_all(args, requests):
         from bench.sweep import run_ray
         outcomes = run_ray(prepared, store, address=args.ray_address,
                            cpus_per_run=args.cpus_per_run, gpus_per_run=args.gpus_per_run,
-                           force=args.force, jax_cache=args.jax_cache, log=log)
+                           force=args.force, jax_cache=args.jax_cache, log=log,
+                           warm=not getattr(args, "no_warm", False))
     else:
         from bench.sweep import run_local
         enable_compilation_cache(args.jax_cache)
         outcomes = run_local(prepared, store, force=args.force, log=log,
                              isolate=not getattr(args, "in_process", False),
-                             jax_cache=args.jax_cache)
+                             jax_cache=args.jax_cache, warm=not getattr(args, "no_warm", False))
     return 1 if any(o.status in ("failed", "crashed") for o in outcomes) else 0
 
 
@@ -173,6 +175,14 @@ def cmd_leaderboard(args):
     if os.path.exists(agg):
         print(open(agg).read())
     print("written: " + ", ".join(paths))
+    return 0
+
+
+def cmd_reindex(args):
+    from bench.runner import reindex
+    from bench.store import Store
+    for old, new in reindex(Store(args.store), dry_run=args.dry_run):
+        print(f"{old} -> {new}")
     return 0
 
 
@@ -272,6 +282,9 @@ def _add_run_options(p, budget_default=None):
                    help="env-step budget (deterministic; with or instead of --budget)")
     p.add_argument("--no-charge-compile", action="store_true",
                    help="do not count JIT compile time against the budget")
+    p.add_argument("--no-warm", action="store_true",
+                   help="skip the compile warm-up before each configuration's first timed "
+                        "cell (README: Budget)")
     p.add_argument("--evals", type=int, default=10, help="evaluations spread over the budget")
     p.add_argument("--preset", default=None, help="method config preset (e.g. cpu, paper)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -341,6 +354,10 @@ def build_parser():
     p = sub.add_parser("leaderboard", help="aggregate the store into a table")
     p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_leaderboard)
+    p = sub.add_parser("reindex", help="rename a store's records to the current run-id "
+                       "scheme (after an ildbench upgrade), so sweeps find them")
+    p.add_argument("--dry-run", action="store_true", help="list the renames only")
+    p.set_defaults(fn=cmd_reindex)
     p = sub.add_parser("check", help="CI regression gate: canary suite vs committed reference")
     p.add_argument("--update", action="store_true",
                    help="rewrite the reference from this run (after an intended change)")

@@ -83,17 +83,101 @@ def _canonical(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, default=str)
 
 
+def config_identity(config_cls: type | None, config: Mapping[str, Any]) -> dict:
+    """A config as it identifies a run: the fields that differ from the config class's
+    defaults (JSON-normalized, so a tuple equals the list a record stores). A knob added
+    later with a default that reproduces the old behaviour then neither re-runs finished
+    cells nor splits their variant (records made before it existed lack the field, which
+    reads as the default); a change of behaviour bumps the method's `version` instead.
+    `config_cls` None (a record of a method not registered here): the whole config."""
+    norm = json.loads(_canonical(dict(config)))
+    if config_cls is None:
+        return norm
+    defaults = {}
+    for f in dataclasses.fields(config_cls):
+        if f.default is not dataclasses.MISSING:
+            defaults[f.name] = json.loads(_canonical(f.default))
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            defaults[f.name] = json.loads(_canonical(f.default_factory()))  # type: ignore[misc]
+    return {k: v for k, v in norm.items() if k not in defaults or v != defaults[k]}
+
+
+def _run_key(method: str, version: str, config: dict, task: str, demo_sha: str, seed: int,
+             budget: dict, eval_cfg: dict, num_demos: int, ildbench: str) -> str:
+    key = {"method": method, "method_version": version, "config": config, "task": task,
+           "demo": demo_sha, "seed": seed, "budget": budget, "eval": eval_cfg,
+           "num_demos": num_demos, "ildbench": ildbench}
+    return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
+
+
 def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budget: Budget,
            eval_cfg: EvalConfig, num_demos: int) -> str:
     """Content hash of everything that determines the result. The git revision is recorded
     but not hashed (it would re-run every cell after any commit); a method's `version`
-    and the ildbench version are hashed instead: bump them when results change."""
-    key = {"method": method.name, "method_version": method.version,
-           "config": dataclasses.asdict(config), "task": task, "demo": demo_sha,
-           "seed": seed, "budget": dataclasses.asdict(budget),
-           "eval": dataclasses.asdict(eval_cfg), "num_demos": num_demos,
-           "ildbench": __version__}
-    return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
+    and the ildbench version are hashed instead: bump them when results change. The config
+    enters as its `config_identity` (non-default fields only)."""
+    return _run_key(method.name, method.version,
+                    config_identity(method.config_cls, dataclasses.asdict(config)), task,
+                    demo_sha, seed, dataclasses.asdict(budget), dataclasses.asdict(eval_cfg),
+                    num_demos, __version__)
+
+
+def record_run_id(record: Mapping[str, Any], config_cls: type | None) -> str:
+    """The run id a record would get today (its stored fields under the current id scheme)."""
+    return _run_key(record["method"], record["method_version"],
+                    config_identity(config_cls, record["config"]), record["task"],
+                    record["demo"]["sha256"], record["seed"], record["budget"], record["eval"],
+                    record["num_demos"], record["versions"]["ildbench"])
+
+
+def reindex(store: Store, dry_run: bool = False, log: Callable[[str], None] = print
+            ) -> list[tuple[str, str]]:
+    """Rename a store's records to the current run-id scheme (`ildbench reindex`), so a
+    sweep finds the cells that store already holds. Returns (old, new) pairs. The record
+    keeps its old id under `previous_run_ids`. Two records that now share an id are the
+    same cell run twice: the newer stays, the older moves to <store>/duplicates/."""
+    from bench.plugins import all_methods
+    from bench.store import write_json_atomic
+    methods = all_methods()
+    moves = []
+    for rec in list(store.records()):
+        if "run_id" not in rec or "versions" not in rec:
+            log(f"reindex: {rec.get('run_id', '?')} is not a run record; left as is")
+            continue
+        spec = methods.get(rec["method"])
+        new = record_run_id(rec, spec.config_cls if spec else None)
+        old = rec["run_id"]
+        if new == old:
+            continue
+        moves.append((old, new))
+        if dry_run:
+            continue
+        there = store.get(new)
+        if there is not None and str(there.get("started", "")) >= str(rec.get("started", "")):
+            _move_aside(store, old)
+            log(f"reindex: {old} duplicates the newer {new}; moved to duplicates/")
+            continue
+        if there is not None:
+            _move_aside(store, new)
+            log(f"reindex: {new} duplicates the newer {old}; moved to duplicates/")
+        rec = {**rec, "run_id": new,
+               "previous_run_ids": list(rec.get("previous_run_ids", [])) + [old]}
+        traj_old, traj_new = store.trajectory_path(old), store.trajectory_path(new)
+        if os.path.exists(traj_old):
+            os.replace(traj_old, traj_new)
+        write_json_atomic(store.path(new), rec)
+        os.remove(store.path(old))
+    log(f"reindex: {len(moves)} of the records in {store.root} "
+        f"{'would be' if dry_run else 'were'} renamed")
+    return moves
+
+
+def _move_aside(store: Store, run_id: str) -> None:
+    dest = os.path.join(store.root, "duplicates")
+    os.makedirs(dest, exist_ok=True)
+    for path in (store.path(run_id), store.trajectory_path(run_id)):
+        if os.path.exists(path):
+            os.replace(path, os.path.join(dest, os.path.basename(path)))
 
 
 def _finite_tree(tree) -> bool:

@@ -14,16 +14,32 @@ so an interrupted sweep resumes where it stopped. Records are written by whichev
 ran the cell, atomically (bench.store), one file per run id: concurrent workers never share
 a file, and a reader never sees half a record.
 
+Compile warm-up: under a wall-clock budget that charges JIT compile time (the default), a
+cell's score depended on the state of the persistent compilation cache: the first seed of a
+configuration compiled from scratch (session 8's grid: ILD on inverted_pendulum spent 179 of
+its 180 s compiling and made 1 update; SHAC's 194 s left it none), later seeds loaded the
+cache (~20 s). So before the first cell of each group of cells that share compiled training
+graphs (same method, version, task, config and demo count) the sweep runs that cell once
+more in a spawned process with a one-env-step budget, one evaluation episode and no transfer,
+into a throwaway store: it fills the persistent cache, and every timed cell then pays the
+same cache-load cost. Skipped where it cannot matter (env-step budgets, compile not
+charged) and with `warm=False` (`--no-warm`).
+
 Progress (rich): cells done / skipped / left, the last cell's score, and an ETA from the mean
 wall time of the cells run in this sitting.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 import sys
+import tempfile
 import time
 from typing import Callable, Sequence
 
+from bench.budget import Budget
+from bench.evaluator import EvalConfig
 from bench.runner import Prepared, RunRequest, execute, prepare
 from bench.store import Store
 
@@ -110,12 +126,14 @@ def _cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | No
     return p, rec, skipped
 
 
-def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None) -> None:
+def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
+           quiet: bool = False) -> None:
     import os
     r = request
     if os.environ.get(CRASH_HOOK) == f"{r.method}/{r.task}/{r.seed}":
         os._exit(70)
-    _cell(request, store_root, force, jax_cache, log=lambda s: print(s, flush=True))
+    _cell(request, store_root, force, jax_cache,
+          log=(lambda s: None) if quiet else (lambda s: print(s, flush=True)))
 
 
 def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
@@ -137,17 +155,67 @@ def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
     return {"status": "crashed", "final_normalized": None}, False
 
 
+def needs_warmup(p: Prepared) -> bool:
+    """Compile time can change this cell's result: a wall-clock budget that charges it."""
+    b = p.request.budget
+    return b.seconds is not None and b.charge_compile
+
+
+def compile_group(p: Prepared) -> str:
+    """Cells with the same key share their compiled training graphs (the seed, budget and
+    evaluation settings are not baked into them)."""
+    r = p.request
+    return json.dumps({"method": r.method, "version": p.spec.version, "task": r.task,
+                       "config": dataclasses.asdict(p.config), "num_demos": r.num_demos},
+                      sort_keys=True, default=str)
+
+
+def warmup_request(r: RunRequest) -> RunRequest:
+    """The cell cut to one env step of training (one update or chunk), one evaluation
+    episode, no transfer: enough to compile its training graphs."""
+    return dataclasses.replace(
+        r, budget=Budget(env_steps=1, evals=1, charge_compile=r.budget.charge_compile),
+        eval=EvalConfig(num_episodes=1, deterministic=r.eval.deterministic))
+
+
+def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> float:
+    """Run the warm-up cell in a spawned process (so only the persistent cache carries
+    over, as between the sweep's own cells) into a throwaway store; returns its seconds."""
+    import multiprocessing as mp
+    tmp = tempfile.mkdtemp(prefix="ildbench-warmup-")
+    t0 = time.perf_counter()
+    try:
+        proc = mp.get_context("spawn").Process(
+            target=_child, args=(warmup_request(p.request), tmp, True, jax_cache, True))
+        proc.start()
+        proc.join()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    dt = time.perf_counter() - t0
+    r = p.request
+    log(f"compile warm-up for {r.method} on {r.task}: {dt:.0f}s"
+        + ("" if proc.exitcode == 0 else f" (its process ended with code {proc.exitcode}; "
+           "the cells run anyway)"))
+    return dt
+
+
 def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
               log: Callable[[str], None] = print, isolate: bool = True,
-              jax_cache: str | None = None) -> list[Outcome]:
-    """`isolate`: each cell in a fresh spawned process (default); False: in this process."""
+              jax_cache: str | None = None, warm: bool = True) -> list[Outcome]:
+    """`isolate`: each cell in a fresh spawned process (default); False: in this process.
+    `warm`: a compile warm-up before the first pending cell of each compile group."""
     to_run = sum(force or store.finished(p.run_id) is None for p in prepared)
     progress = Progress(len(prepared), to_run, log)
     out = []
+    warmed: set[str] = set()
     try:
         for p in prepared:
             t0 = time.perf_counter()
             done = None if force else store.finished(p.run_id)
+            if done is None and warm and needs_warmup(p) and compile_group(p) not in warmed:
+                warmed.add(compile_group(p))
+                warm_up(p, jax_cache, log)
+                t0 = time.perf_counter()
             if done is not None:
                 rec, skipped = done, True
             elif isolate:
@@ -177,10 +245,14 @@ def _ray_cell(request: RunRequest, store_root: str, force: bool, jax_cache: str 
 def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = None,
             cpus_per_run: float = 1, gpus_per_run: float = 0, force: bool = False,
             jax_cache: str | None = None, log: Callable[[str], None] = print,
-            init_kwargs: dict | None = None) -> list[Outcome]:
+            init_kwargs: dict | None = None, warm: bool = True) -> list[Outcome]:
     """Cells as Ray tasks. `address`: an existing cluster ('auto' or 'ray://host:port');
     None starts a local Ray. Every cell requests the same CPUs/GPUs, so runs in one
-    comparison get equal resources; the store must be a path every worker can reach."""
+    comparison get equal resources; the store must be a path every worker can reach.
+    `warm`: each compile group's warm-up runs (as a Ray task, into a throwaway folder in the
+    store) before any cell is submitted. On a cluster the persistent compilation cache
+    (`jax_cache`) must be a path every worker reaches too, or a worker's first cell of a
+    group still compiles from scratch."""
     import os
 
     import ray
@@ -189,6 +261,26 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
                  **(init_kwargs or {}))
     root = os.path.abspath(store.root)
     cell = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run, max_retries=0)(_ray_cell)
+    if warm:
+        groups: dict[str, Prepared] = {}
+        for p in prepared:
+            if (force or store.finished(p.run_id) is None) and needs_warmup(p):
+                groups.setdefault(compile_group(p), p)
+        if groups:
+            os.makedirs(root, exist_ok=True)
+            tmp = tempfile.mkdtemp(prefix=".warmup-", dir=root)
+            t0 = time.perf_counter()
+            try:
+                refs = [cell.remote(warmup_request(p.request), tmp, True, jax_cache,
+                                    cpus_per_run) for p in groups.values()]
+                for ref in refs:
+                    try:
+                        ray.get(ref)
+                    except Exception as e:  # the cells run anyway and report their own
+                        log(f"a compile warm-up failed in its Ray worker: {e}")
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+            log(f"compile warm-up of {len(groups)} group(s): {time.perf_counter() - t0:.0f}s")
     pending = {}
     skipped = []
     for p in prepared:

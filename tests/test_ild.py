@@ -297,14 +297,22 @@ def test_budget_lr_schedule_decays_over_the_budget_spent(store):
                                                              rel=1e-5)
 
 
-def test_update_equals_optax_adam_on_the_same_gradient():
+def test_negative_warmup_is_a_clear_error():
+    with pytest.raises(ValueError, match="lr_warmup must be >= 0 updates, got -1"):
+        ILDConfig(lr_warmup=-1)
+
+
+@pytest.mark.parametrize("warmup", [0, 2])
+def test_update_equals_optax_adam_on_the_same_gradient(warmup):
     """The update's optimizer (clip, Adam direction, then the scheduled step) is optax's
-    clip + adam(schedule), step for step."""
+    clip + adam(schedule), step for step; with lr_warmup W the schedule is multiplied by
+    min(1, (k + 1) / W) at update k."""
     import optax
     from methods.common.policy import ObsNorm, TanhGaussianPolicy
     from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
     task = make_task("pointmass")
-    cfg = ILDConfig(num_envs=4, hidden=(16,), updates=3, lr_end=1e-4, lr_schedule="linear")
+    cfg = ILDConfig(num_envs=4, hidden=(16,), updates=3, lr_end=1e-4, lr_schedule="linear",
+                    lr_warmup=warmup)
     policy = TanhGaussianPolicy(task.obs_size, task.action_size, cfg.hidden)
     goals = jnp.zeros((1, task.episode_length, task.state_size))
     norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))
@@ -312,7 +320,8 @@ def test_update_equals_optax_adam_on_the_same_gradient():
                                                         jnp.ones(task.obs_size)))
     update, opt, lr = make_update(task, policy, goals, norm, cfg, jax.random.PRNGKey(1))
     loss_fn = make_rollout_loss(task, policy, goals, norm, cfg)
-    ref = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr))
+    sched = (lambda k: lr(k) * jnp.minimum(1.0, (k + 1) / warmup)) if warmup else lr
+    ref = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(sched))
     s = initial_state(params, opt, jax.random.PRNGKey(2), cfg)
     p_ref, o_ref = params, ref.init(params)
     for _ in range(3):

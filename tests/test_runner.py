@@ -93,6 +93,61 @@ def test_run_id_is_a_content_hash(toy):
     assert prepare(_req(gain="3")).run_id != base
 
 
+@dataclasses.dataclass(frozen=True)
+class ToyConfigWithKnob(ToyConfig):
+    knob: tuple = (1, 2)  # a field added after records were made; its default = old behaviour
+
+
+def test_a_knob_added_later_keeps_run_ids_and_variants(toy, store, monkeypatch):
+    """The run id hashes the config's non-default fields: a record made before a field
+    existed is the same cell as one at that field's default (same id, same leaderboard
+    variant); a non-default value is a new cell."""
+    from bench.leaderboard import variant
+    from bench.runner import config_identity
+    assert config_identity(ToyConfigWithKnob, {"gain": 2.0, "knob": [1, 2]}) == {}
+    assert config_identity(ToyConfigWithKnob, {"gain": 3, "knob": [1]}) == {"gain": 3,
+                                                                            "knob": [1]}
+    assert config_identity(None, {"gain": 2.0}) == {"gain": 2.0}  # unknown method: all
+    old, _ = execute(prepare(_req()), store, log=lambda s: None)
+    monkeypatch.setitem(plugins._REGISTRY, "toy",
+                        dataclasses.replace(toy, config_cls=ToyConfigWithKnob))
+    p = prepare(_req())
+    assert p.run_id == old["run_id"] and store.finished(p.run_id) is not None
+    assert prepare(_req(knob="3")).run_id != old["run_id"]
+    new = {**old, "config": {**old["config"], "knob": [1, 2]}}
+    assert variant(new) == variant(old)
+    assert variant({**old, "config": {**old["config"], "knob": [3]}}) != variant(old)
+
+
+def test_reindex_renames_old_scheme_records_and_sets_duplicates_aside(toy, store):
+    """Records whose id came from an earlier id scheme are renamed to today's id (record,
+    trajectory), keep the old id, and are then found by a sweep; the older of two records of
+    the same cell moves to duplicates/."""
+    from bench.runner import reindex
+    rec, _ = execute(prepare(_req()), store, log=lambda s: None)
+    rid = rec["run_id"]
+    for i, started in ((1, "2000-01-01"), (2, "2001-01-01")):   # the same cell, old ids
+        old = {**rec, "run_id": f"oldscheme{i:07d}", "started": started}
+        with open(store.path(old["run_id"]), "w") as f:
+            json.dump(old, f)
+    os.replace(store.path(rid), os.path.join(str(tmp_dir := store.root), "..", "moved.json"))
+    os.replace(store.trajectory_path(rid), store.trajectory_path("oldscheme0000002"))
+    assert reindex(store, dry_run=True, log=lambda s: None) == [
+        ("oldscheme0000001", rid), ("oldscheme0000002", rid)]
+    assert store.get(rid) is None                                  # a dry run moves nothing
+    moves = reindex(store, log=lambda s: None)
+    assert len(moves) == 2
+    now = store.finished(prepare(_req()).run_id)
+    assert now["previous_run_ids"] == ["oldscheme0000002"] and now["started"] == "2001-01-01"
+    assert os.path.exists(store.trajectory_path(rid))
+    dup = [n for n in os.listdir(os.path.join(tmp_dir, "duplicates")) if n.endswith(".json")]
+    assert len(dup) == 1
+    with open(os.path.join(tmp_dir, "duplicates", dup[0])) as f:
+        assert json.load(f)["started"] == "2000-01-01"            # the older one
+    assert [r["run_id"] for r in store.records()] == [rid]
+    assert reindex(store, log=lambda s: None) == []                # idempotent
+
+
 def test_divergence_is_recorded_with_the_last_valid_evaluation(toy, store):
     rec, _ = execute(prepare(_req(nan_after=4)), store, log=lambda s: None)
     assert rec["status"] == "diverged" and "non-finite parameters" in rec["message"]

@@ -1,4 +1,5 @@
 """Sweeps: the Ray executor (several workers writing records at once) and the local one."""
+import dataclasses
 import json
 import os
 
@@ -9,6 +10,7 @@ from bench.evaluator import EvalConfig
 from bench.runner import RunRequest, execute, prepare
 from bench.store import Store, write_json_atomic
 from bench.sweep import Progress, Outcome, run_local, run_ray
+import bench.sweep as sweep
 
 ray = pytest.importorskip("ray")
 
@@ -58,6 +60,9 @@ def test_ray_sweep_runs_cells_in_parallel_and_matches_local(local_ray, tmp_path)
     assert set(recs) == {p.run_id for p in prepared}
     assert all(r["resources"]["cpus"] == 1 for r in recs.values())
     assert any("ETA" in l and "[3/3]" in l for l in lines)
+    assert any(l.startswith("compile warm-up of 1 group(s)") for l in lines)  # 3 seeds, 1 group
+    assert sorted(os.listdir(store.root)) == sorted(               # the warm-up left nothing
+        [f"{p.run_id}.{ext}" for p in prepared for ext in ("json", "traj.npz")])
     # the same cell run locally: same run id, a close score. Not bit-equal: a Ray worker's
     # thread settings differ from this process's and XLA's CPU reductions may follow them;
     # 200 BC updates amplify that to ~2% of the return (measured: -20.09 vs -19.75).
@@ -77,7 +82,7 @@ def test_local_sweep_resumes_and_progress_counts(tmp_path):
     execute(prepared[0], store, log=lambda s: None)               # an earlier sitting
     lines = []
     out = run_local(prepared, store, log=lambda s: lines.append(s) if "ETA" in s else None,
-                    isolate=False)
+                    isolate=False, warm=False)
     assert [o.skipped for o in out] == [True, False]
     assert "skipped 1, left 0" in lines[-1] and "run 1" in lines[-1]
 
@@ -88,7 +93,7 @@ def test_isolated_cells_survive_a_hard_crash_and_match_in_process(tmp_path, monk
     prepared = [prepare(_bc(s)) for s in range(2)]
     monkeypatch.setenv(CRASH_HOOK, "bc/pointmass/0")              # seed 0's process dies
     lines = []
-    out = run_local(prepared, store, log=lines.append)
+    out = run_local(prepared, store, log=lines.append, warm=False)
     assert [o.status for o in out] == ["crashed", "ok"]           # the sweep went on
     assert any("process died (exit code 70)" in l for l in lines)
     assert store.get(prepared[0].run_id) is None                  # unrecorded: re-runs
@@ -97,8 +102,45 @@ def test_isolated_cells_survive_a_hard_crash_and_match_in_process(tmp_path, monk
     again, _ = execute(prepared[1], inproc, log=lambda s: None)
     assert again["final_return"] == pytest.approx(rec["final_return"], rel=1e-6)
     monkeypatch.delenv(CRASH_HOOK)
-    out = run_local(prepared, store, log=lines.append)             # resume: only seed 0 runs
+    out = run_local(prepared, store, log=lines.append, warm=False) # resume: only seed 0 runs
     assert [(o.status, o.skipped) for o in out] == [("ok", False), ("ok", True)]
+
+
+def test_compile_warmup_once_per_group_before_its_first_pending_cell(tmp_path, monkeypatch):
+    """One warm-up per group of cells sharing compiled graphs (seeds share; a config change
+    does not), only for pending cells under a wall-clock budget that charges compile; the
+    warm-up cell is the same cell cut to one env step, one episode, no transfer."""
+    store = Store(str(tmp_path / "runs"))
+    steps = RunRequest(method="bc", task="pointmass", seed=0, overrides={"updates": 200},
+                       budget=Budget(env_steps=10_000), eval=EvalConfig(num_episodes=8))
+    other = RunRequest(method="bc", task="pointmass", seed=0, overrides={"updates": 100},
+                       budget=Budget(seconds=60), eval=EvalConfig(num_episodes=8))
+    uncharged = RunRequest(method="bc", task="pointmass", seed=0, overrides={"updates": 50},
+                           budget=Budget(seconds=60, charge_compile=False))
+    prepared = [prepare(r) for r in (_bc(0), _bc(1), _bc(2), steps, other, uncharged)]
+    assert len({sweep.compile_group(p) for p in prepared[:3]}) == 1
+    assert sweep.compile_group(prepared[0]) != sweep.compile_group(prepared[4])
+    w = sweep.warmup_request(dataclasses.replace(other, eval=EvalConfig(transfer=True)))
+    assert (w.budget.env_steps, w.budget.seconds, w.eval.num_episodes, w.eval.transfer) == \
+        (1, None, 1, False) and w.overrides == other.overrides and w.seed == other.seed
+    execute(prepared[0], store, log=lambda s: None)               # seed 0 finished earlier
+    calls = []
+    monkeypatch.setattr(sweep, "warm_up", lambda p, cache, log: calls.append(p.request))
+    run_local(prepared, store, log=lambda s: None, isolate=False)
+    assert calls == [_bc(1), other]                   # seed 1 warms the group; once each
+    calls.clear()
+    run_local(prepared, store, log=lambda s: None, isolate=False)
+    assert calls == []                                             # all finished: no warm-up
+
+
+def test_warm_up_fills_the_compile_cache_and_records_nothing(tmp_path):
+    store = Store(str(tmp_path / "runs"))
+    cache = str(tmp_path / "jax-cache")
+    lines = []
+    sweep.warm_up(prepare(_bc(0)), cache, lines.append)
+    assert os.listdir(cache)                                       # compiled graphs stored
+    assert not os.path.exists(store.root) or not os.listdir(store.root)
+    assert len(lines) == 1 and lines[0].startswith("compile warm-up for bc on pointmass")
 
 
 def test_progress_eta_from_mean_wall_time():

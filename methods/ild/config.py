@@ -28,6 +28,11 @@ class ILDConfig:
     'constant'. Measured (ild v4, 3 seeds, 3 min cpu, README ILD section): budget vs linear
     inverted_pendulum 1.000 0.933 0.450 vs 0.899 0.848 0.564, hopper 1.002 1.006 1.014 vs
     0.994 0.998 0.817, reacher 0.932 0.949 0.915 vs 0.945 0.947 0.925."""
+    lr_warmup: int = 0
+    """Updates over which the rate ramps linearly from learning_rate/lr_warmup up to the
+    schedule's rate (0: none). Adam's first step moves every weight by the full rate
+    whatever the gradient's size (lr x sign(g)): `python -m methods.ild.probe` measured that
+    first step at lr 1e-3 raising inverted_pendulum's loss 588x from the BC warm start."""
     lr_end: float = 1e-5
     """Final learning rate of the linear schedule (the original's value)."""
     max_grad_norm: float = 0.3
@@ -88,6 +93,8 @@ class ILDConfig:
                      "state_std_min"):
             checks.append((getattr(self, name) > 0, f"{name} must be > 0, got "
                                                      f"{getattr(self, name)}"))
+        if self.lr_warmup < 0:
+            raise ValueError(f"lr_warmup must be >= 0 updates, got {self.lr_warmup}")
         for name in ("num_envs", "updates", "truncation", "bc_samples", "chunk"):
             checks.append((getattr(self, name) >= 1, f"{name} must be >= 1, got "
                                                       f"{getattr(self, name)}"))

@@ -124,6 +124,8 @@ def make_update(task, policy, goals, norm, config: ILDConfig, reset_key):
         raw = optax.global_norm(g)
         upd, opt_state = opt.update(g, s.opt_state, s.params)
         rate = s.lr if config.lr_schedule == "budget" else lr(s.step)
+        if config.lr_warmup > 0:
+            rate = rate * jnp.minimum(1.0, (s.step + 1) / config.lr_warmup)
         upd = jax.tree.map(lambda u: u * -rate, upd)
         metrics = {**aux, "grad/norm_raw": raw,
                    "grad/norm_clipped": jnp.minimum(raw, config.max_grad_norm),
