@@ -61,11 +61,19 @@ def _direction(x: float, base: float) -> str:
     return "up" if x > base else "down"
 
 
-def table(store: Store, task: str, seconds: float | None = None) -> pd.DataFrame:
+def table(store: Store, task: str, seconds: float | None = None,
+          version: str | None = None) -> pd.DataFrame:
+    """Runs of ILD's `version` only (default: the registered one), so seeds of an older ILD
+    left in the store never pool with today's."""
+    if version is None:
+        from bench.plugins import get_method
+        version = get_method("ild").version
     rows = []
     for r in store.records():
         if r["task"] != task or r["method"] != "ild" or r.get("status") not in ("ok",
                                                                                 "diverged"):
+            continue
+        if str(r.get("method_version")) != str(version):
             continue
         if seconds is not None and (r.get("budget") or {}).get("seconds") != seconds:
             continue
@@ -77,7 +85,8 @@ def table(store: Store, task: str, seconds: float | None = None) -> pd.DataFrame
                          "transfer": r.get("transfer_normalized")})
     df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer"])
     if df.empty:
-        raise ValueError(f"no ILD ablation runs on {task!r} in {store.root}; run "
+        raise ValueError(f"no ILD (version {version}) ablation runs on {task!r} in "
+                         f"{store.root}; run "
                          f"`ildbench ablate --task {task} --budget 3m` first")
     g = df.groupby("setting").agg(seeds=("seed", "count"), normalized=("normalized", "mean"),
                                   normalized_std=("normalized", "std"),

@@ -251,7 +251,9 @@ class RunContext:
             raise Diverged(f"non-finite evaluation return at env step {env_steps}")
         self.last_trajectory = res.trajectory
         point = {"train_s": round(self.elapsed(), 3), "env_steps": int(env_steps),
-                 "return": res.mean_return, "normalized": res.mean_normalized}
+                 "return": res.mean_return, "normalized": res.mean_normalized,
+                 # the method's last reported training metrics: loss beside score over time
+                 "train": dict(self.last_metrics)}
         self.curve.append(point)
         self.log(f"  eval @ {point['train_s']:.1f}s, {env_steps} steps: return "
                  f"{point['return']:.2f}, normalized {point['normalized']}")

@@ -62,6 +62,9 @@ def test_step_budget_is_enforced_and_curve_recorded(toy, store):
     assert not skipped and rec["status"] == "ok"
     assert rec["env_steps"] == 1000
     assert [p["env_steps"] for p in rec["curve"]] == [200, 400, 600, 800, 1000, 1000]
+    # each point carries the training metrics last reported (toy: loss 1 / iteration)
+    assert [p["train"]["train/loss"] for p in rec["curve"]] == pytest.approx(
+        [1 / 2, 1 / 4, 1 / 6, 1 / 8, 1 / 10, 1 / 10])
     assert rec["final_normalized"] == rec["curve"][-1]["normalized"]
     assert rec["final_from"] == "final policy"
 

@@ -7,9 +7,11 @@ from bench import ablation, tradeoff
 from tasks.core import task_with_backend
 
 
-def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None):
+def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None, version=None):
+    from bench.plugins import get_method
     base = {"loss": "chamfer", "truncation": 10, "alpha": 1.0, "num_envs": 32}
     store.write({"run_id": rid, "task": "hopper", "method": "ild", "seed": seed,
+                 "method_version": version or get_method("ild").version,
                  "status": "ok", "final_normalized": norm, "final_return": 100 * norm,
                  "config": {**base, **config}, "num_demos": num_demos,
                  "budget": {"seconds": secs}, "curve": curve or [],
@@ -22,6 +24,7 @@ def test_ablation_table_directions_against_the_paper(store):
     _ild(store, "l2", 0, 0.50, {"loss": "l2"})          # paper: l2 < chamfer on hopper
     _ild(store, "t1", 0, 0.95, {"truncation": 1})       # paper: trunc1 < trunc10
     _ild(store, "d16", 0, 0.85, {}, num_demos=16)
+    _ild(store, "old", 2, 0.10, {}, version="0")        # an older ILD: not pooled
     df = ablation.table(store, "hopper").set_index("setting")
     assert df.loc["base", "normalized"] == pytest.approx(0.85) and df.loc["base", "seeds"] == 2
     assert df.loc["l2", "ours_vs_base"] == "down" and df.loc["l2", "paper_vs_base"] == "down"
