@@ -334,6 +334,26 @@ def test_update_equals_optax_adam_on_the_same_gradient(warmup):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
 
 
+def test_inverted_pendulum_runs_full_bptt_by_task_override():
+    from bench.plugins import build_config, get_method
+    ild = get_method("ild")
+    assert build_config(ild, "inverted_pendulum", "cpu").truncation == 128
+    assert build_config(ild, "hopper", "cpu").truncation == 10
+
+
+@pytest.mark.slow
+def test_truncated_gradient_points_uphill_on_inverted_pendulum():
+    """Why inverted_pendulum overrides truncation (methods/ild/config.py): from the BC warm
+    start the truncated (window 10) gradient opposes the true one; full BPTT follows it.
+    ~10 minutes on one CPU core (BC warm starts and full-BPTT compiles)."""
+    from methods.ild.probe import probe
+    task = make_task("inverted_pendulum")
+    demo = load_demo(task.spec.demo_path, task)
+    short = probe(task, demo, ILDConfig(num_envs=16, truncation=10), eps=(1e-4,), lrs=(1e-5,))
+    full = probe(task, demo, ILDConfig(num_envs=16, truncation=128), eps=(1e-4,), lrs=(1e-5,))
+    assert short["cosine"] < -0.5 and full["cosine"] > 0.99
+
+
 def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
     """methods.ild.probe on pointmass (linear dynamics, no contacts): central differences at
     eps 1e-3 equal the analytic directional derivative, and Adam's first step at a tiny lr
@@ -344,6 +364,11 @@ def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
     r = probe(task, demo, _cfg(bc_updates=20), eps=(1e-3,), lrs=(1e-7, 1.0))
     np.testing.assert_allclose(r["fd"][1e-3], r["grad_norm"], rtol=0.05)
     assert r["adam"][1e-7] < r["loss"] < r["adam"][1.0]
+    assert -1.0 <= r["cosine"] <= 1.0 and set(r["adam_used"]) == {1e-7, 1.0}
+    full = probe(task, demo, _cfg(bc_updates=20, truncation=task.episode_length,
+                                  grad_normalization=False), eps=(1e-3,), lrs=(1e-7,))
+    assert full["cosine"] == pytest.approx(1.0, abs=1e-5)  # the update's gradient is the true one
+    assert full["adam_used"][1e-7] == pytest.approx(full["adam"][1e-7], rel=1e-6)
     assert r["params"] == sum(x.size for x in jax.tree_util.tree_leaves(
         TanhGaussianPolicy(task.obs_size, task.action_size, (32, 32)).init(
             jax.random.PRNGKey(0), ObsNorm.fit(jnp.zeros((2, task.obs_size))))["net"]))

@@ -12,7 +12,10 @@ policy parameters, and prints:
   scale; where they disagree by orders of magnitude it jumps (contacts, sticky grasps);
 - the loss after Adam's first step. Adam's bias-corrected first update is lr * sign(g) for
   every parameter (its size is lr * sqrt(#params), whatever the gradient's size), so this
-  is exactly the first move an ILD run makes at that learning rate.
+  is exactly the first move an ILD run makes at that learning rate;
+- the gradient ILD's update actually follows (the config's truncation and per-step
+  normalization): its cosine with the true gradient, and the loss after Adam's first step
+  along it. A negative cosine means the update climbs the loss it is meant to descend.
 """
 from __future__ import annotations
 
@@ -38,7 +41,8 @@ def _norm(tree) -> float:
 def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
           positions_only: bool = False) -> dict:
     """Returns {'loss', 'grad_norm', 'params', 'other_keys', 'fd': {eps: value},
-    'adam': {lr: loss after the first step}}."""
+    'adam': {lr: loss after the first step}, 'cosine': cos(true gradient, the update's
+    gradient), 'adam_used': {lr: loss after the first step along the update's gradient}}."""
     obs, actions = bc_pairs(task, demo)
     ds = jnp.asarray(demo.states[:, 1:])                                     # s_1..s_T
     norm = StateNorm.fit(ds, config.state_std_min)
@@ -73,9 +77,16 @@ def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
           for e in eps}
     sign = jax.tree.map(jnp.sign, g["net"])
     adam = {lr: float(loss(moved(sign, -lr), key)) for lr in lrs}
+    used_fn = make_rollout_loss(task, policy, norm(ds), norm, config)  # what ILD follows
+    gu = jax.jit(jax.grad(lambda p: used_fn(p, key, init_keys)[0]))(params)["net"]
+    dot = sum(jnp.sum(a * b) for a, b in zip(jax.tree_util.tree_leaves(g["net"]),
+                                             jax.tree_util.tree_leaves(gu)))
+    cosine = float(dot) / max(gn * _norm(gu), 1e-30)
+    sign_u = jax.tree.map(jnp.sign, gu)
+    adam_used = {lr: float(loss(moved(sign_u, -lr), key)) for lr in lrs}
     others = [float(loss(params, jax.random.PRNGKey(seed + 100 + i))) for i in range(4)]
     return {"loss": float(l0), "grad_norm": gn, "params": n_params, "other_keys": others,
-            "fd": fd, "adam": adam}
+            "fd": fd, "adam": adam, "cosine": cosine, "adam_used": adam_used}
 
 
 def main(argv=None):
@@ -89,12 +100,16 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--positions-only", action="store_true",
                     help="cloth: leave particle velocities out of the loss")
+    ap.add_argument("--truncation", type=int, default=None,
+                    help="the update's truncation window (default: ILD's, 10)")
     args = ap.parse_args(argv)
     enable_compilation_cache()
     task = make_task(args.task)
     demo = load_demo(task.spec.demo_path, task)
     config = dataclasses.replace(ILDConfig(num_envs=args.num_envs),
                                  **TASK_OVERRIDES.get(args.task, {}))
+    if args.truncation is not None:
+        config = dataclasses.replace(config, truncation=args.truncation)
     r = probe(task, demo, config, args.seed, positions_only=args.positions_only)
     print(f"{args.task}{' (positions only)' if args.positions_only else ''}: B = "
           f"{config.num_envs}, {r['params']} parameters, from the BC warm start")
@@ -107,6 +122,11 @@ def main(argv=None):
     for lr, v in r["adam"].items():
         print(f"  lr {lr:g} (step norm {lr * np.sqrt(r['params']):.3g}): {v:.4f} "
               f"({v / r['loss']:.2f}x)")
+    print(f"the update's gradient (truncation {config.truncation}, per-step normalization "
+          f"{'on' if config.grad_normalization else 'off'}): cosine with the true gradient "
+          f"{r['cosine']:.3f}; loss after Adam's first step along it:")
+    for lr, v in r["adam_used"].items():
+        print(f"  lr {lr:g}: {v:.4f} ({v / r['loss']:.2f}x)")
 
 
 if __name__ == "__main__":
