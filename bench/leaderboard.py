@@ -42,12 +42,10 @@ def variant(record: dict) -> str:
     """Short id of (method version, preset, config identity, evaluation): runs pool over
     seeds only when equal. The config enters as bench.runner.config_identity (non-default
     fields), so a record made before a knob existed pools with one at the knob's default."""
-    from bench.plugins import all_methods
-    from bench.runner import config_identity
-    spec = all_methods().get(record.get("method"))
-    config = config_identity(spec.config_cls if spec else None, record.get("config") or {})
+    from bench.runner import record_config_identity
     key = json.dumps([record.get("method_version"), record.get("preset"),
-                      config, record.get("eval")], sort_keys=True, default=str)
+                      record_config_identity(record), record.get("eval")], sort_keys=True,
+                     default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:6]
 
 

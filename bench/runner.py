@@ -122,10 +122,18 @@ def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budg
                     num_demos, __version__)
 
 
-def record_run_id(record: Mapping[str, Any], config_cls: type | None) -> str:
+def record_config_identity(record: Mapping[str, Any]) -> dict:
+    """`config_identity` of a stored record, against its method's config class if that
+    method is registered here (else the whole config)."""
+    from bench.plugins import all_methods
+    spec = all_methods().get(record.get("method"))
+    return config_identity(spec.config_cls if spec else None, record.get("config") or {})
+
+
+def record_run_id(record: Mapping[str, Any]) -> str:
     """The run id a record would get today (its stored fields under the current id scheme)."""
     return _run_key(record["method"], record["method_version"],
-                    config_identity(config_cls, record["config"]), record["task"],
+                    record_config_identity(record), record["task"],
                     record["demo"]["sha256"], record["seed"], record["budget"], record["eval"],
                     record["num_demos"], record["versions"]["ildbench"])
 
@@ -136,16 +144,13 @@ def reindex(store: Store, dry_run: bool = False, log: Callable[[str], None] = pr
     sweep finds the cells that store already holds. Returns (old, new) pairs. The record
     keeps its old id under `previous_run_ids`. Two records that now share an id are the
     same cell run twice: the newer stays, the older moves to <store>/duplicates/."""
-    from bench.plugins import all_methods
     from bench.store import write_json_atomic
-    methods = all_methods()
     moves = []
     for rec in list(store.records()):
         if "run_id" not in rec or "versions" not in rec:
             log(f"reindex: {rec.get('run_id', '?')} is not a run record; left as is")
             continue
-        spec = methods.get(rec["method"])
-        new = record_run_id(rec, spec.config_cls if spec else None)
+        new = record_run_id(rec)
         old = rec["run_id"]
         if new == old:
             continue

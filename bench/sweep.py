@@ -136,20 +136,25 @@ def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | N
           log=(lambda s: None) if quiet else (lambda s: print(s, flush=True)))
 
 
-def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
-                  log: Callable[[str], None]) -> tuple[dict, bool]:
+def _spawn(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
+           quiet: bool = False) -> int | None:
+    """Run one cell in a fresh spawned process; returns its exit code."""
     import multiprocessing as mp
-    import os
     proc = mp.get_context("spawn").Process(
-        target=_child, args=(p.request, os.path.abspath(store.root), force, jax_cache))
+        target=_child, args=(request, store_root, force, jax_cache, quiet))
     proc.start()
     proc.join()
+    return proc.exitcode
+
+
+def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
+                  log: Callable[[str], None]) -> tuple[dict, bool]:
+    import os
+    code = _spawn(p.request, os.path.abspath(store.root), force, jax_cache)
     rec = store.get(p.run_id)
-    if rec is not None and (proc.exitcode == 0 or rec.get("status") in ("ok", "diverged",
-                                                                         "failed")):
+    if rec is not None and (code == 0 or rec.get("status") in ("ok", "diverged", "failed")):
         return rec, False
-    why = (f"signal {-proc.exitcode}" if proc.exitcode and proc.exitcode < 0
-           else f"exit code {proc.exitcode}")
+    why = f"signal {-code}" if code and code < 0 else f"exit code {code}"
     log(f"run {p.run_id}: the cell's process died ({why}) before writing a record; it is "
         "left unrecorded and re-runs on resume")
     return {"status": "crashed", "final_normalized": None}, False
@@ -178,25 +183,19 @@ def warmup_request(r: RunRequest) -> RunRequest:
         eval=EvalConfig(num_episodes=1, deterministic=r.eval.deterministic))
 
 
-def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> float:
+def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> None:
     """Run the warm-up cell in a spawned process (so only the persistent cache carries
-    over, as between the sweep's own cells) into a throwaway store; returns its seconds."""
-    import multiprocessing as mp
+    over, as between the sweep's own cells) into a throwaway store."""
     tmp = tempfile.mkdtemp(prefix="ildbench-warmup-")
     t0 = time.perf_counter()
     try:
-        proc = mp.get_context("spawn").Process(
-            target=_child, args=(warmup_request(p.request), tmp, True, jax_cache, True))
-        proc.start()
-        proc.join()
+        code = _spawn(warmup_request(p.request), tmp, True, jax_cache, quiet=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    dt = time.perf_counter() - t0
     r = p.request
-    log(f"compile warm-up for {r.method} on {r.task}: {dt:.0f}s"
-        + ("" if proc.exitcode == 0 else f" (its process ended with code {proc.exitcode}; "
-           "the cells run anyway)"))
-    return dt
+    log(f"compile warm-up for {r.method} on {r.task}: {time.perf_counter() - t0:.0f}s"
+        + ("" if code == 0 else f" (its process ended with code {code}; the cells run "
+           "anyway)"))
 
 
 def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,

@@ -93,8 +93,8 @@ class ILDConfig:
                      "state_std_min"):
             checks.append((getattr(self, name) > 0, f"{name} must be > 0, got "
                                                      f"{getattr(self, name)}"))
-        if self.lr_warmup < 0:
-            raise ValueError(f"lr_warmup must be >= 0 updates, got {self.lr_warmup}")
+        checks.append((self.lr_warmup >= 0,
+                       f"lr_warmup must be >= 0 updates, got {self.lr_warmup}"))
         for name in ("num_envs", "updates", "truncation", "bc_samples", "chunk"):
             checks.append((getattr(self, name) >= 1, f"{name} must be >= 1, got "
                                                       f"{getattr(self, name)}"))

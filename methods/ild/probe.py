@@ -101,7 +101,7 @@ def main(argv=None):
     ap.add_argument("--positions-only", action="store_true",
                     help="cloth: leave particle velocities out of the loss")
     ap.add_argument("--truncation", type=int, default=None,
-                    help="the update's truncation window (default: ILD's, 10)")
+                    help="the update's truncation window (default: ILD's for the task)")
     args = ap.parse_args(argv)
     enable_compilation_cache()
     task = make_task(args.task)
