@@ -261,10 +261,18 @@ def cmd_plot_robustness(args):
 
 def cmd_expert(args):
     from tasks import get_spec
+    from bench.budget import parse_seconds
     from tasks.expert import make_demo, train_expert
     get_spec(args.task)  # unknown task -> error listing valid ones
     if args.expert_cmd == "train":
-        train_expert(args.task, seed=args.seed, num_timesteps=args.steps)
+        train_expert(args.task, seed=args.seed, num_timesteps=args.steps, preset=args.preset,
+                     time_limit_s=parse_seconds(args.time_limit) if args.time_limit else None,
+                     out_dir=args.out, resume=args.resume,
+                     overrides=dict(kv.split("=", 1) for kv in args.set or []))
+    elif args.expert_cmd == "inspect":
+        from tasks.expert import inspect_expert
+        for k, v in inspect_expert(args.task, args.params, args.rollouts).items():
+            print(f"{k:>18}: {v}")
     elif args.expert_cmd == "calibrate":
         from bench.calibrate import CAL_DIR, calibrate
         calibrate(args.task)
@@ -404,11 +412,27 @@ def build_parser():
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--steps", type=int, default=None, help="override PPO num_timesteps")
+    e.add_argument("--preset", default="cpu", choices=["cpu", "gpu"],
+                   help="PPO recipe table: cpu (256 envs) or gpu (brax's recipes, 2048-4096 envs)")
+    e.add_argument("--time-limit", default=None,
+                   help="stop at the first evaluation past this wall-clock (e.g. 8m), keeping "
+                        "the best evaluation's parameters")
+    e.add_argument("--out", default=None,
+                   help="folder for <task>_expert.msgpack/.json (default: tasks/data)")
+    e.add_argument("--resume", default=None, metavar="FOLDER",
+                   help="continue from the best evaluation of a run written there with --out")
+    e.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a PPO setting of the recipe (repeatable)")
     e = esub.add_parser("demo", help="roll the expert into the task's demo file")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--rollouts", type=int, default=64)
     e.add_argument("--keep", type=int, default=16)
+    e = esub.add_parser("inspect", help="what a demo would see of an expert: early ends, "
+                                        "returns over 128 steps, R_expert and R_random")
+    e.add_argument("--task", required=True)
+    e.add_argument("--params", default=None, help="a parameter file (default: the task's)")
+    e.add_argument("--rollouts", type=int, default=64)
     e = esub.add_parser("calibrate", help="per-task default transfer magnitudes from the "
                                           "expert's own returns under each family")
     e.add_argument("--task", required=True)

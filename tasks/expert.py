@@ -88,42 +88,190 @@ def _ppo_networks(task: Task):
         preprocess_observations_fn=running_statistics.normalize)
 
 
+# Accelerator recipes (`ildbench expert train --preset gpu`): brax's own published PPO
+# settings for these bodies (thousands of parallel envs, 1000-step episodes so that nothing
+# learned depends on the 128-step cut), for a GPU where 10^8 env steps take minutes.
+_GPU_BASE = dict(_PPO_BASE, num_timesteps=100_000_000, episode_length=1000, num_envs=2048,
+                 batch_size=1024, num_minibatches=32, num_updates_per_batch=4,
+                 unroll_length=10, discounting=0.97, num_evals=50, num_eval_envs=128)
+PPO_GPU_CONFIGS: dict[str, dict] = {
+    "ant": dict(_GPU_BASE, num_envs=4096, batch_size=2048, unroll_length=5),
+    "humanoid": dict(_GPU_BASE, reward_scaling=0.1, entropy_cost=1e-3,
+                     num_updates_per_batch=8),
+    "walker2d": dict(_GPU_BASE, reward_scaling=5.0, learning_rate=6e-4, batch_size=512,
+                     unroll_length=20, num_updates_per_batch=8, discounting=0.997),
+    "swimmer": dict(_GPU_BASE, discounting=0.995),
+    "hopper": dict(_GPU_BASE, reward_scaling=5.0, learning_rate=6e-4, batch_size=512,
+                   unroll_length=20, num_updates_per_batch=8, discounting=0.997),
+    "acrobot": dict(_GPU_BASE, episode_length=128, num_envs=4096, batch_size=2048,
+                    discounting=0.99, reward_scaling=1.0),
+    "reacher": dict(_GPU_BASE, episode_length=128, reward_scaling=5.0, entropy_cost=1e-3,
+                    num_timesteps=20_000_000),
+    "inverted_pendulum": dict(_GPU_BASE, episode_length=128, num_timesteps=10_000_000),
+}
+PRESETS = {"cpu": PPO_CONFIGS, "gpu": PPO_GPU_CONFIGS}
+
+
+class _TimeUp(Exception):
+    pass
+
+
+def ppo_config(task_name: str, preset: str = "cpu", num_timesteps: int | None = None,
+               overrides: dict | None = None) -> dict:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown expert preset {preset!r}; presets: {', '.join(PRESETS)}")
+    table = PRESETS[preset]
+    if task_name not in table:
+        raise ValueError(f"no PPO expert recipe for task {task_name!r} in preset {preset!r}; "
+                         f"recipes exist for {', '.join(sorted(table))} (pointmass and cloth "
+                         f"have hand-made experts)")
+    cfg = dict(table[task_name])
+    if num_timesteps is not None:
+        if int(num_timesteps) <= 0:
+            raise ValueError(f"--steps must be positive, got {num_timesteps}")
+        cfg["num_timesteps"] = int(num_timesteps)
+    for k, v in (overrides or {}).items():
+        if k not in cfg:
+            raise ValueError(f"unknown PPO setting {k!r} for the {preset} recipe of {task_name!r}; "
+                             f"settings: {', '.join(sorted(cfg))}")
+        if isinstance(cfg[k], bool):
+            if str(v).lower() not in ("true", "false"):
+                raise ValueError(f"PPO setting {k!r} takes true or false, got {v!r}")
+            cfg[k] = str(v).lower() == "true"
+        else:
+            cfg[k] = type(cfg[k])(float(v)) if isinstance(cfg[k], int) else type(cfg[k])(v)
+    return cfg
+
+
 def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None,
-                 log=_print) -> str:
-    """Train a PPO expert and store it; returns the parameter file path."""
+                 log=_print, preset: str = "cpu", time_limit_s: float | None = None,
+                 out_dir: str | None = None, resume: str | None = None,
+                 overrides: dict | None = None) -> str:
+    """Train a PPO expert and store it; returns the parameter file path.
+
+    The stored parameters are those of the best evaluation so far (brax's eval return over
+    the recipe's episode length), written at every improvement, so an interrupted or
+    time-limited training (`time_limit_s`: stop at the first evaluation past it) leaves a
+    usable expert; its json says `complete: false` until training ends normally. Beside it,
+    <task>_expert_value.msgpack holds the value network (not committed: only `resume`, a
+    folder of an earlier run, reads it to continue training from its best evaluation).
+    """
     from brax.training.agents.ppo import train as ppo
 
-    if task_name not in PPO_CONFIGS:
-        raise ValueError(f"no PPO expert recipe for task {task_name!r}; recipes exist for "
-                         f"{', '.join(sorted(PPO_CONFIGS))} (pointmass and cloth have hand-made experts)")
+    from tasks.jax_compat import apply as jax_compat
+    shims = jax_compat()
+    if shims:
+        log(f"[{task_name}] jax {jax.__version__}: restored {', '.join(shims)} for brax")
+    cfg = ppo_config(task_name, preset, num_timesteps, overrides)
     task = make_task(task_name)
-    cfg = dict(PPO_CONFIGS[task_name])
-    if num_timesteps is not None:
-        cfg["num_timesteps"] = int(num_timesteps)
+    param_path, meta_path = expert_paths(task_name)
+    if out_dir is not None:
+        param_path = os.path.join(out_dir, os.path.basename(param_path))
+        meta_path = os.path.join(out_dir, os.path.basename(meta_path))
+    os.makedirs(os.path.dirname(param_path), exist_ok=True)
+    from bench.runner import machine
     t0 = time.perf_counter()
+    history: list[dict] = []
+    best = {"ret": -np.inf}
+
+    value_path = param_path.replace("_expert.msgpack", "_expert_value.msgpack")
+    restore, resumed = None, None
+    if resume is not None:
+        restore, resumed = _load_for_resume(task, task_name, resume)
+        log(f"[{task_name}] resuming from {resume} (its best evaluation: step "
+            f"{resumed['best_eval_step']:,d}, return {resumed['best_eval_return']:.2f})")
+
+    def write(params, step, complete):
+        state = serialization.to_state_dict({"normalizer": params[0], "policy": params[1]})
+        with open(param_path, "wb") as f:
+            f.write(serialization.msgpack_serialize(jax.tree.map(np.asarray, state)))
+        with open(value_path, "wb") as f:
+            f.write(serialization.msgpack_serialize(
+                serialization.to_state_dict(jax.tree.map(np.asarray, params[2]))))
+        with open(meta_path, "w") as f:
+            json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "preset": preset,
+                       "ppo": cfg, "best_eval_step": step,
+                       "best_eval_return": best["ret"], "complete": complete,
+                       "resumed_from": resumed,
+                       "wall_clock_s": round(time.perf_counter() - t0, 1),
+                       "machine": machine(), "versions": library_versions(),
+                       "evals": history}, f, indent=1, sort_keys=True)
+
+    # brax calls policy_params_fn(step, ...) and progress_fn(step, eval of those params) in
+    # either order (initial evaluation first; in the loop, parameters first): pair them by step.
+    pending: dict = {}
+
+    def consider():
+        if "params" in pending and "ret" in pending and pending["p_step"] == pending["r_step"]:
+            ret = pending["ret"]
+            if np.isfinite(ret) and ret > best["ret"]:
+                best["ret"] = ret
+                write(pending["params"], pending["p_step"], complete=False)
+            pending.clear()
 
     def progress(step, metrics):
         el = time.perf_counter() - t0
+        ret = float(metrics.get("eval/episode_reward", np.nan))
+        history.append({"step": int(step), "eval_return": round(ret, 3), "elapsed_s": round(el, 1)})
         left = el / max(step, 1) * (cfg["num_timesteps"] - step) if step else float("nan")
-        log(f"[{task_name}] steps {step:>10,d}/{cfg['num_timesteps']:,d}  eval return "
-            f"{float(metrics.get('eval/episode_reward', np.nan)):9.2f}  elapsed {el:6.0f}s  "
-            f"left ~{left:6.0f}s")
+        log(f"[{task_name}] steps {step:>11,d}/{cfg['num_timesteps']:,d}  eval return "
+            f"{ret:9.2f}  elapsed {el:6.0f}s  left ~{left:6.0f}s")
+        pending.update(ret=ret, r_step=int(step))
+        consider()
+        if step and time_limit_s is not None and el > time_limit_s:
+            raise _TimeUp
 
-    make_policy, params, _ = ppo.train(environment=task.env, seed=seed, progress_fn=progress,
-                                       **cfg)
-    wall = time.perf_counter() - t0
-    param_path, meta_path = expert_paths(task_name)
-    os.makedirs(DATA_DIR, exist_ok=True)
-    state = serialization.to_state_dict({"normalizer": params[0], "policy": params[1]})
-    with open(param_path, "wb") as f:
-        f.write(serialization.msgpack_serialize(jax.tree.map(np.asarray, state)))
-    from bench.runner import machine
+    def on_params(step, make_policy, params):
+        pending.update(params=jax.tree.map(np.asarray, params), p_step=int(step))
+        consider()
+
+    try:
+        ppo.train(environment=task.env, seed=seed, progress_fn=progress,
+                  policy_params_fn=on_params, restore_params=restore, **cfg)
+        complete = True
+    except _TimeUp:
+        complete = False
+        log(f"[{task_name}] time limit {time_limit_s:.0f}s reached; keeping the best "
+            f"evaluation's parameters")
+    if not np.isfinite(best["ret"]):
+        raise RuntimeError(f"[{task_name}] no finite evaluation return; nothing saved")
+    # Re-write the json with the final status (parameters: the best evaluation's).
+    with open(meta_path) as f:
+        meta = json.load(f)
+    meta.update(complete=complete, wall_clock_s=round(time.perf_counter() - t0, 1),
+                evals=history)
     with open(meta_path, "w") as f:
-        json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "ppo": cfg,
-                   "wall_clock_s": round(wall, 1), "machine": machine(),
-                   "versions": library_versions()}, f, indent=1, sort_keys=True)
-    log(f"[{task_name}] expert saved to {param_path} ({wall:.0f}s)")
+        json.dump(meta, f, indent=1, sort_keys=True)
+    log(f"[{task_name}] expert saved to {param_path} (best eval return {best['ret']:.2f} at "
+        f"step {meta['best_eval_step']:,d}; {meta['wall_clock_s']:.0f}s)")
     return param_path
+
+
+def _load_for_resume(task: Task, task_name: str, folder: str):
+    """(normalizer, policy, value) of an earlier run's best evaluation, and its record."""
+    from brax.training.acme import running_statistics
+    base = os.path.join(folder, f"{task_name}_expert")
+    paths = [base + ".msgpack", base + "_value.msgpack", base + ".json"]
+    missing = [p for p in paths if not os.path.exists(p)]
+    if missing:
+        raise FileNotFoundError(f"cannot resume {task_name!r} from {folder}: missing "
+                                f"{', '.join(missing)} (written by `ildbench expert train "
+                                f"--out {folder}`)")
+    nets = _ppo_networks(task)
+    key = jax.random.PRNGKey(0)
+    template = {"normalizer": running_statistics.init_state(
+        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
+        "policy": nets.policy_network.init(key)}
+    with open(paths[0], "rb") as f:
+        pol = serialization.from_state_dict(template, serialization.msgpack_restore(f.read()))
+    with open(paths[1], "rb") as f:
+        value = serialization.from_state_dict(nets.value_network.init(key),
+                                              serialization.msgpack_restore(f.read()))
+    with open(paths[2]) as f:
+        meta = json.load(f)
+    return (pol["normalizer"], pol["policy"], value), {
+        "folder": folder, "best_eval_step": meta["best_eval_step"],
+        "best_eval_return": meta["best_eval_return"], "previous": meta.get("resumed_from")}
 
 
 @functools.lru_cache(maxsize=None)
@@ -137,14 +285,20 @@ def expert_policy(task_name: str):
         from tasks.cloth.env import expert_actions
         return Policy(act=_open_loop_act, params=jnp.asarray(expert_actions()),
                       init_memory=_step_zero)
-    from brax.training.acme import running_statistics
-    from brax.training.agents.ppo import networks as ppo_networks
-
-    task = make_task(task_name)
     param_path, _ = expert_paths(task_name)
     if not os.path.exists(param_path):
         raise FileNotFoundError(f"task {task_name!r} has no expert at {param_path}; train one "
                                 f"with `ildbench expert train --task {task_name}`")
+    return load_ppo_policy(task_name, param_path)
+
+
+def load_ppo_policy(task_name: str, param_path: str):
+    """A PPO expert parameter file (normalizer + policy) as a bench.api.Policy."""
+    from bench.api import Policy
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    task = make_task(task_name)
     nets = _ppo_networks(task)
     template = {"normalizer": running_statistics.init_state(
         jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
@@ -206,6 +360,31 @@ def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> 
 
     out = jax.jit(jax.vmap(episode))(keys)
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def inspect_expert(task_name: str, param_path: str | None = None, rollouts: int = 64,
+                   seed: int = 0) -> dict:
+    """What `make_demo` would see of an expert parameter file (default: the task's own):
+    how many of `rollouts` deterministic 128-step rollouts end early (the first termination
+    step of each that does), the best and mean return of those that do not, and the shared
+    evaluator's R_expert and R_random. `ildbench expert inspect` prints it."""
+    from bench.evaluator import EvalConfig, Evaluator, random_policy
+    task = make_task(task_name)
+    param_path = param_path or expert_paths(task_name)[0]
+    policy = load_ppo_policy(task_name, param_path)
+    r = rollout(task, policy, jax.random.split(jax.random.PRNGKey(seed), rollouts))
+    dones = r["dones"].astype(bool)
+    ended = dones.any(axis=1)
+    ret = r["rewards"].sum(1)
+    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
+    return {"task": task_name, "params": param_path, "rollouts": rollouts,
+            "ended_early": int(ended.sum()),
+            "first_done_steps": sorted(int(np.argmax(d)) + 1 for d in dones[ended]),
+            "best_return_kept": float(ret[~ended].max()) if (~ended).any() else None,
+            "mean_return_kept": float(ret[~ended].mean()) if (~ended).any() else None,
+            "expert_return": ev.evaluate(policy, REFERENCE_SEED).mean_return,
+            "random_return": ev.evaluate(random_policy(task.action_size),
+                                         REFERENCE_SEED).mean_return}
 
 
 def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,

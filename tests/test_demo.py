@@ -112,12 +112,19 @@ def test_demo_of_another_width_is_rejected(demo, tmp_path):
         load_demo(p, make_task(TASK))
 
 
-REPLAY_ATOL = {"hopper": 5e-4}  # spring contacts, float32; demos rolled out vmapped: max |diff| over all 16 demos 1.7e-4 (obs up to 10)
-"""Per-task tolerance of the open-loop replay (1e-5 unless stated: measured, not guessed)."""
+# Per-task tolerance of the open-loop replay (1e-5 unless stated: measured, not guessed).
+# The replay is vmapped over all K demos of the file (as the demo was rolled out, batched):
+# contact-rich bodies in float32 are chaotic, and XLA rounds a batch of 3 differently from a
+# batch of 16, so replaying ant's first 3 demos as a batch of 3 drifts to |diff| = 3.2 by step
+# 128 while the batch of 16 reproduces them exactly (diff 0). Measured max |diff| over the
+# first 3 demos, batch 16: hopper 1.7e-4 (obs up to 10), humanoid 3.2e-4 (obs up to 140; two
+# of its 16 demos drift from steps 80 and 121), swimmer 5e-6, ant 0.
+REPLAY_ATOL = {"hopper": 5e-4, "humanoid": 5e-4, "swimmer": 5e-5, "ant": 1e-4}
 
 
-@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher",
-                                  pytest.param("hopper", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher"]
+                         + [pytest.param(n, marks=pytest.mark.slow)
+                            for n in ("hopper", "ant", "humanoid", "swimmer")])
 def test_replaying_demo_actions_reproduces_states(name):
     """State t is BEFORE action t: env.reset(init_key) gives s_0; stepping a_t gives s_{t+1}."""
     task = make_task(name)
@@ -134,13 +141,13 @@ def test_replaying_demo_actions_reproduces_states(name):
         return (jnp.concatenate([task.matched_state(s0)[None], states]),
                 jnp.concatenate([s0.obs[None], obs]), rew)
 
-    for k in range(min(3, demo.num_demos)):
-        states, obs, rew = jax.jit(replay)(jnp.asarray(demo.init_keys[k]),
-                                            jnp.asarray(demo.actions[k]))
-        tol = REPLAY_ATOL.get(name, 1e-5)
-        np.testing.assert_allclose(states, demo.states[k], atol=tol)
-        np.testing.assert_allclose(obs, demo.obs[k], atol=tol)
-        np.testing.assert_allclose(rew, demo.rewards[k], atol=tol)
+    states, obs, rew = jax.jit(jax.vmap(replay))(jnp.asarray(demo.init_keys),
+                                                 jnp.asarray(demo.actions))
+    tol = REPLAY_ATOL.get(name, 1e-5)
+    k = min(3, demo.num_demos)
+    np.testing.assert_allclose(states[:k], demo.states[:k], atol=tol)
+    np.testing.assert_allclose(obs[:k], demo.obs[:k], atol=tol)
+    np.testing.assert_allclose(rew[:k], demo.rewards[:k], atol=tol)
 
 
 def test_top_k_and_bounds(demo):

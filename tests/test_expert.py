@@ -1,0 +1,110 @@
+"""Expert training plumbing: recipes and overrides, best-evaluation checkpointing under brax's
+callback order, the time limit, resume, and the shims for newer JAX."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tasks import expert
+from tasks.jax_compat import clip_compat, device_put_replicated
+
+
+def test_recipes_and_overrides():
+    cfg = expert.ppo_config("walker2d", "gpu", overrides={"discounting": "0.99",
+                                                          "batch_size": "1024",
+                                                          "normalize_observations": "false"})
+    assert cfg["discounting"] == 0.99 and cfg["batch_size"] == 1024
+    assert isinstance(cfg["batch_size"], int) and cfg["normalize_observations"] is False
+    assert expert.ppo_config("ant", "cpu", num_timesteps=5)["num_timesteps"] == 5
+    with pytest.raises(ValueError, match="unknown PPO setting 'discount'.*discounting"):
+        expert.ppo_config("ant", "gpu", overrides={"discount": "0.9"})
+    with pytest.raises(ValueError, match="unknown expert preset 'tpu'"):
+        expert.ppo_config("ant", "tpu")
+    with pytest.raises(ValueError, match="no PPO expert recipe for task 'pointmass'"):
+        expert.ppo_config("pointmass", "gpu")
+    with pytest.raises(ValueError, match="takes true or false"):
+        expert.ppo_config("ant", "gpu", overrides={"normalize_observations": "yes"})
+    with pytest.raises(ValueError, match="--steps must be positive"):
+        expert.ppo_config("ant", "gpu", num_timesteps=0)
+
+
+def _fake_ppo(evals, calls):
+    """brax PPO's callback order: initial evaluation, then its parameters; in the loop the
+    parameters of step s first, then the evaluation of those same parameters."""
+    def train(environment, seed, progress_fn, policy_params_fn, restore_params=None, **cfg):
+        calls.append(restore_params)
+        p = lambda v: (np.float32(v), {"w": np.full(2, v, np.float32)},
+                       {"v": np.float32(-v)})
+        progress_fn(0, {"eval/episode_reward": evals[0]})
+        policy_params_fn(0, None, p(evals[0]))
+        for i, ret in enumerate(evals[1:], 1):
+            policy_params_fn(i * 10, None, p(ret))
+            progress_fn(i * 10, {"eval/episode_reward": ret})
+        return None, None, None
+    return train
+
+
+@pytest.fixture
+def fake_train(monkeypatch, tmp_path):
+    from brax.training.agents.ppo import train as ppo_train
+    written = {}
+
+    def serialize(state):  # record what would be written, keyed by the tree's shape
+        written.setdefault("states", []).append(jax.tree.map(np.asarray, state))
+        return b"x"
+    monkeypatch.setattr(expert.serialization, "msgpack_serialize", serialize)
+    calls = []
+
+    def run(evals, **kw):
+        monkeypatch.setattr(ppo_train, "train", _fake_ppo(evals, calls))
+        written.clear()
+        path = expert.train_expert("ant", preset="gpu", out_dir=str(tmp_path), log=lambda *a: None,
+                                   **kw)
+        meta = json.load(open(tmp_path / "ant_expert.json"))
+        policies = [s for s in written["states"] if "policy" in s]
+        return path, meta, policies, calls
+    return run
+
+
+def test_the_best_evaluations_parameters_are_kept(fake_train):
+    # Evaluation i scores the parameters of value i's list entry; the best is 7.0 at step 20.
+    path, meta, policies, _ = fake_train([1.0, 3.0, 7.0, 2.0, float("nan")])
+    assert path.endswith("ant_expert.msgpack")
+    assert meta["best_eval_step"] == 20 and meta["best_eval_return"] == 7.0
+    assert meta["complete"] is True and [e["step"] for e in meta["evals"]] == [0, 10, 20, 30, 40]
+    # Written at each improvement (1, 3, 7), each time with the parameters evaluated.
+    assert [float(s["policy"]["w"][0]) for s in policies] == [1.0, 3.0, 7.0]
+
+
+def test_time_limit_stops_at_an_evaluation_and_keeps_the_best(fake_train):
+    path, meta, policies, _ = fake_train([1.0, 5.0, 4.0, 9.0], time_limit_s=0.0)
+    # The limit is checked after each evaluation past step 0: training stops after step 10.
+    assert meta["complete"] is False and meta["best_eval_return"] == 5.0
+    assert [e["step"] for e in meta["evals"]] == [0, 10]
+
+
+def test_no_finite_evaluation_saves_nothing(fake_train):
+    with pytest.raises(RuntimeError, match="no finite evaluation return"):
+        fake_train([float("nan"), float("nan")])
+
+
+def test_resume_names_missing_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="cannot resume 'ant'.*ant_expert_value.msgpack"):
+        expert._load_for_resume(None, "ant", str(tmp_path))
+
+
+def test_jax_compat_shims_match_jax():
+    x = jnp.arange(-3.0, 4.0)
+    np.testing.assert_array_equal(clip_compat(x, a_min=-1, a_max=2), jnp.clip(x, -1, 2))
+    np.testing.assert_array_equal(clip_compat(a=x, a_max=0.5), jnp.clip(x, max=0.5))
+    np.testing.assert_array_equal(clip_compat(x, min=0), jnp.clip(x, min=0))
+    tree = {"a": jnp.ones((2, 3)), "b": jnp.float32(4.0)}
+    ours = device_put_replicated(tree, jax.local_devices())
+    if hasattr(jax, "device_put_replicated"):  # jax 0.7.2 (the pin) still has the original
+        theirs = jax.device_put_replicated(tree, jax.local_devices())
+        for k in tree:
+            assert ours[k].shape == theirs[k].shape
+            np.testing.assert_array_equal(ours[k], theirs[k])
+    assert ours["a"].shape == (len(jax.local_devices()), 2, 3)
