@@ -28,8 +28,8 @@ def _run(capsys, *argv):
      "updates must be >= 1"),
     (["run", "--method", "bc", "--task", "pointmass", "--budget", "5s", "--set", "lr"],
      "--set expects key=value"),
-    (["run", "--method", "bc", "--task", "humanoid", "--budget", "5s"],
-     "task 'humanoid' has no demo yet"),
+    (["run", "--method", "bc", "--task", "walker2d", "--budget", "5s"],
+     "task 'walker2d' has no demo yet"),
     (["sweep", "--methods", "bc", "--tasks", "pointmass", "nope", "--budget", "5s"],
      "unknown task 'nope'"),
 ])
