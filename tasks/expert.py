@@ -1,11 +1,13 @@
 """Experts and demos: `ildbench expert train --task T` and `ildbench expert demo --task T`.
 
-Experts are brax PPO policies trained on the task's own unwrapped env with 128-step
-episodes (pointmass has an analytic PD expert instead). A trained expert is stored as
-tasks/data/<task>_expert.msgpack (observation normalizer + policy parameters, a few KB)
-with tasks/data/<task>_expert.json (PPO config, seed, env steps, wall-clock, hardware).
-Training is deterministic for a given seed on CPU, so an interrupted training is rerun
-from its seed.
+Experts are brax PPO policies trained on the task's own unwrapped env (pointmass has an
+analytic PD expert instead): the `cpu` recipes use 128-step episodes and 256 envs, the `gpu`
+recipes brax's published settings (thousands of envs, 1000-step episodes). A trained expert
+is stored as tasks/data/<task>_expert.msgpack (observation normalizer + policy parameters of
+the best evaluation, a few KB) with tasks/data/<task>_expert.json (PPO config, seed,
+evaluation history, wall-clock, hardware, library versions). Training is deterministic for a
+given seed on one machine, so an interrupted training can be rerun from its seed, or
+continued from its best evaluation with `resume`.
 
 A demo file is made by rolling the deterministic expert from `rollouts` initial states,
 dropping episodes that terminated early, and keeping the best `keep` by return (index 0
