@@ -65,9 +65,15 @@ def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
 def aggregates(frame: pd.DataFrame, of: str = "ild", reps: int = 2000
                ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """(aggregate table, improvement table, notes) for 'normalized' and 'transfer'."""
+    from tasks import TASKS
     chosen = main_variants(frame)
     imitation = chosen[~chosen.reference.astype(bool)]
     tables, improvements, notes = [], [], []
+    weak = {t: TASKS[t].weak_reference for t in sorted(imitation.task.unique())
+            if t in TASKS and TASKS[t].weak_reference}
+    for t, why in weak.items():
+        notes.append(f"{t}: left out of the aggregates (its table rows stay): {why}")
+    imitation = imitation[~imitation.task.isin(list(weak))]
     for value in ("normalized", "transfer"):
         part = imitation.dropna(subset=[value])
         if part.empty:
@@ -127,7 +133,9 @@ def _curve_band(runs: list[list[dict]], grid: np.ndarray) -> tuple[np.ndarray, .
 
 
 def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
-    """Anytime curves of the main variant per (task, method), runs with a wall-clock budget."""
+    """Anytime curves of the main variant per (task, method), runs with a wall-clock budget;
+    the aggregate curve leaves out tasks with a weak expert reference (TaskSpec)."""
+    from tasks import TASKS
     chosen = main_variants(frame)
     chosen = chosen[chosen.horizon.notna()]
     paths = []
@@ -142,7 +150,7 @@ def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
             ax.plot(grid, mean, label=f"{method}{ref} (n={len(g)})",
                     ls="--" if ref else "-")
             ax.fill_between(grid, lo, hi, alpha=0.2)
-            if not ref:
+            if not ref and not (task in TASKS and TASKS[task].weak_reference):
                 agg.setdefault(method, []).append(mean)
         ax.axhline(1.0, color="grey", lw=0.5, ls=":")
         ax.set_xlabel("training wall-clock (s)")

@@ -135,3 +135,21 @@ def test_report_aggregates_curves_and_refusal(store, tmp_path):
     write_report(store, str(tmp_path / "out2"), reps=50)
     text = (tmp_path / "out2" / "aggregates.md").read_text()
     assert "not aggregated: unequal seed counts" in text
+
+
+def test_a_task_with_a_weak_reference_stays_in_the_table_but_not_the_aggregates(store, tmp_path):
+    from bench.report import aggregates, write_report
+    from tasks import TASKS
+    assert TASKS["swimmer"].weak_reference and not TASKS["hopper"].weak_reference
+    for seed in range(2):
+        _full(store, f"ih{seed}", "ild", "hopper", seed, 0.9 - 0.1 * seed, [_pt(5, 0.9)])
+        _full(store, f"bh{seed}", "bc", "hopper", seed, 0.5 - 0.1 * seed, [_pt(5, 0.5)])
+        _full(store, f"is{seed}", "ild", "swimmer", seed, 3.0, [_pt(5, 3.0)])
+        _full(store, f"bs{seed}", "bc", "swimmer", seed, 3.2, [_pt(5, 3.2)])
+    agg, imp, notes = aggregates(lb.records_frame(store), reps=200)
+    nominal = agg[agg.score == "normalized"].set_index("method")
+    assert nominal.loc["ild", "mean"] == pytest.approx(0.85)          # hopper only
+    assert set(nominal.task_set) == {"hopper"}
+    assert any(n.startswith("swimmer: left out of the aggregates") for n in notes)
+    write_report(store, str(tmp_path / "out"), reps=200)
+    assert "swimmer" in open(tmp_path / "out" / "leaderboard.md").read()
