@@ -62,15 +62,20 @@ def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
     return scored[[k in keep for k in zip(scored.task, scored.method, scored.variant)]]
 
 
+def _weak_reference(task: str) -> str | None:
+    """TaskSpec.weak_reference of a registered task (None for unknown names)."""
+    from tasks import TASKS
+    return TASKS[task].weak_reference if task in TASKS else None
+
+
 def aggregates(frame: pd.DataFrame, of: str = "ild", reps: int = 2000
                ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """(aggregate table, improvement table, notes) for 'normalized' and 'transfer'."""
-    from tasks import TASKS
     chosen = main_variants(frame)
     imitation = chosen[~chosen.reference.astype(bool)]
     tables, improvements, notes = [], [], []
-    weak = {t: TASKS[t].weak_reference for t in sorted(imitation.task.unique())
-            if t in TASKS and TASKS[t].weak_reference}
+    weak = {t: _weak_reference(t) for t in sorted(imitation.task.unique())
+            if _weak_reference(t)}
     for t, why in weak.items():
         notes.append(f"{t}: left out of the aggregates (its table rows stay): {why}")
     imitation = imitation[~imitation.task.isin(list(weak))]
@@ -135,7 +140,6 @@ def _curve_band(runs: list[list[dict]], grid: np.ndarray) -> tuple[np.ndarray, .
 def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
     """Anytime curves of the main variant per (task, method), runs with a wall-clock budget;
     the aggregate curve leaves out tasks with a weak expert reference (TaskSpec)."""
-    from tasks import TASKS
     chosen = main_variants(frame)
     chosen = chosen[chosen.horizon.notna()]
     paths = []
@@ -150,7 +154,7 @@ def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
             ax.plot(grid, mean, label=f"{method}{ref} (n={len(g)})",
                     ls="--" if ref else "-")
             ax.fill_between(grid, lo, hi, alpha=0.2)
-            if not ref and not (task in TASKS and TASKS[task].weak_reference):
+            if not ref and not _weak_reference(task):
                 agg.setdefault(method, []).append(mean)
         ax.axhline(1.0, color="grey", lw=0.5, ls=":")
         ax.set_xlabel("training wall-clock (s)")

@@ -174,7 +174,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
     from bench.runner import machine
     t0 = time.perf_counter()
     history: list[dict] = []
-    best = {"ret": -np.inf}
+    best = {"ret": -np.inf, "step": None}
 
     value_path = param_path.replace("_expert.msgpack", "_expert_value.msgpack")
     restore, resumed = None, None
@@ -183,21 +183,24 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         log(f"[{task_name}] resuming from {resume} (its best evaluation: step "
             f"{resumed['best_eval_step']:,d}, return {resumed['best_eval_return']:.2f})")
 
-    def write(params, step, complete):
+    def write_meta(complete):
+        with open(meta_path, "w") as f:
+            json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "preset": preset,
+                       "ppo": cfg, "best_eval_step": best["step"],
+                       "best_eval_return": best["ret"], "complete": complete,
+                       "resumed_from": resumed,
+                       "wall_clock_s": round(time.perf_counter() - t0, 1),
+                       "machine": machine(), "versions": library_versions(),
+                       "evals": history}, f, indent=1, sort_keys=True)
+
+    def write(params):
         state = serialization.to_state_dict({"normalizer": params[0], "policy": params[1]})
         with open(param_path, "wb") as f:
             f.write(serialization.msgpack_serialize(jax.tree.map(np.asarray, state)))
         with open(value_path, "wb") as f:
             f.write(serialization.msgpack_serialize(
                 serialization.to_state_dict(jax.tree.map(np.asarray, params[2]))))
-        with open(meta_path, "w") as f:
-            json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "preset": preset,
-                       "ppo": cfg, "best_eval_step": step,
-                       "best_eval_return": best["ret"], "complete": complete,
-                       "resumed_from": resumed,
-                       "wall_clock_s": round(time.perf_counter() - t0, 1),
-                       "machine": machine(), "versions": library_versions(),
-                       "evals": history}, f, indent=1, sort_keys=True)
+        write_meta(complete=False)
 
     # brax calls policy_params_fn(step, ...) and progress_fn(step, eval of those params) in
     # either order (initial evaluation first; in the loop, parameters first): pair them by step.
@@ -207,8 +210,8 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         if "params" in pending and "ret" in pending and pending["p_step"] == pending["r_step"]:
             ret = pending["ret"]
             if np.isfinite(ret) and ret > best["ret"]:
-                best["ret"] = ret
-                write(pending["params"], pending["p_step"], complete=False)
+                best.update(ret=ret, step=pending["p_step"])
+                write(pending["params"])
             pending.clear()
 
     def progress(step, metrics):
@@ -237,21 +240,14 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
             f"evaluation's parameters")
     if not np.isfinite(best["ret"]):
         raise RuntimeError(f"[{task_name}] no finite evaluation return; nothing saved")
-    # Re-write the json with the final status (parameters: the best evaluation's).
-    with open(meta_path) as f:
-        meta = json.load(f)
-    meta.update(complete=complete, wall_clock_s=round(time.perf_counter() - t0, 1),
-                evals=history)
-    with open(meta_path, "w") as f:
-        json.dump(meta, f, indent=1, sort_keys=True)
+    write_meta(complete)  # the final status (parameters: the best evaluation's)
     log(f"[{task_name}] expert saved to {param_path} (best eval return {best['ret']:.2f} at "
-        f"step {meta['best_eval_step']:,d}; {meta['wall_clock_s']:.0f}s)")
+        f"step {best['step']:,d}; {time.perf_counter() - t0:.0f}s)")
     return param_path
 
 
 def _load_for_resume(task: Task, task_name: str, folder: str):
     """(normalizer, policy, value) of an earlier run's best evaluation, and its record."""
-    from brax.training.acme import running_statistics
     base = os.path.join(folder, f"{task_name}_expert")
     paths = [base + ".msgpack", base + "_value.msgpack", base + ".json"]
     missing = [p for p in paths if not os.path.exists(p)]
@@ -259,15 +255,9 @@ def _load_for_resume(task: Task, task_name: str, folder: str):
         raise FileNotFoundError(f"cannot resume {task_name!r} from {folder}: missing "
                                 f"{', '.join(missing)} (written by `ildbench expert train "
                                 f"--out {folder}`)")
-    nets = _ppo_networks(task)
-    key = jax.random.PRNGKey(0)
-    template = {"normalizer": running_statistics.init_state(
-        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
-        "policy": nets.policy_network.init(key)}
-    with open(paths[0], "rb") as f:
-        pol = serialization.from_state_dict(template, serialization.msgpack_restore(f.read()))
+    nets, pol = _restore_ppo_params(task, paths[0])
     with open(paths[1], "rb") as f:
-        value = serialization.from_state_dict(nets.value_network.init(key),
+        value = serialization.from_state_dict(nets.value_network.init(jax.random.PRNGKey(0)),
                                               serialization.msgpack_restore(f.read()))
     with open(paths[2]) as f:
         meta = json.load(f)
@@ -294,20 +284,24 @@ def expert_policy(task_name: str):
     return load_ppo_policy(task_name, param_path)
 
 
-def load_ppo_policy(task_name: str, param_path: str):
-    """A PPO expert parameter file (normalizer + policy) as a bench.api.Policy."""
-    from bench.api import Policy
+def _restore_ppo_params(task: Task, param_path: str):
+    """(networks, {'normalizer', 'policy'}) from an expert parameter file."""
     from brax.training.acme import running_statistics
-    from brax.training.agents.ppo import networks as ppo_networks
-
-    task = make_task(task_name)
     nets = _ppo_networks(task)
     template = {"normalizer": running_statistics.init_state(
         jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
         "policy": nets.policy_network.init(jax.random.PRNGKey(0))}
     with open(param_path, "rb") as f:
-        restored = serialization.msgpack_restore(f.read())
-    params = serialization.from_state_dict(template, restored)
+        return nets, serialization.from_state_dict(template,
+                                                   serialization.msgpack_restore(f.read()))
+
+
+def load_ppo_policy(task_name: str, param_path: str):
+    """A PPO expert parameter file (normalizer + policy) as a bench.api.Policy."""
+    from bench.api import Policy
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    nets, params = _restore_ppo_params(make_task(task_name), param_path)
     inference = ppo_networks.make_inference_fn(nets)
     return Policy(act=_PPOAct(inference), params=(params["normalizer"], params["policy"]))
 
@@ -364,56 +358,60 @@ def rollout(task: Task, policy, keys: jax.Array, deterministic: bool = True) -> 
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def _candidates(task: Task, policy, rollouts: int, seed: int):
+    """Deterministic 128-step rollouts from `rollouts` initial states: (init_keys, rollout
+    arrays, which ended early, returns)."""
+    init_keys = jax.random.split(jax.random.PRNGKey(seed), rollouts)
+    r = rollout(task, policy, init_keys)
+    return init_keys, r, r["dones"].astype(bool).any(axis=1), r["rewards"].sum(1)
+
+
+def _references(task: Task, policy) -> tuple[float, float]:
+    """(R_expert, R_random): the shared evaluator on REFERENCE_EPISODES fixed episodes."""
+    from bench.evaluator import EvalConfig, Evaluator, random_policy
+    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
+    return (ev.evaluate(policy, REFERENCE_SEED).mean_return,
+            ev.evaluate(random_policy(task.action_size), REFERENCE_SEED).mean_return)
+
+
 def inspect_expert(task_name: str, param_path: str | None = None, rollouts: int = 64,
                    seed: int = 0) -> dict:
     """What `make_demo` would see of an expert parameter file (default: the task's own):
     how many of `rollouts` deterministic 128-step rollouts end early (the first termination
     step of each that does), the best and mean return of those that do not, and the shared
     evaluator's R_expert and R_random. `ildbench expert inspect` prints it."""
-    from bench.evaluator import EvalConfig, Evaluator, random_policy
     task = make_task(task_name)
     param_path = param_path or expert_paths(task_name)[0]
     policy = load_ppo_policy(task_name, param_path)
-    r = rollout(task, policy, jax.random.split(jax.random.PRNGKey(seed), rollouts))
+    _, r, ended, ret = _candidates(task, policy, rollouts, seed)
     dones = r["dones"].astype(bool)
-    ended = dones.any(axis=1)
-    ret = r["rewards"].sum(1)
-    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
+    r_expert, r_random = _references(task, policy)
     return {"task": task_name, "params": param_path, "rollouts": rollouts,
             "ended_early": int(ended.sum()),
             "first_done_steps": sorted(int(np.argmax(d)) + 1 for d in dones[ended]),
             "best_return_kept": float(ret[~ended].max()) if (~ended).any() else None,
             "mean_return_kept": float(ret[~ended].mean()) if (~ended).any() else None,
-            "expert_return": ev.evaluate(policy, REFERENCE_SEED).mean_return,
-            "random_return": ev.evaluate(random_policy(task.action_size),
-                                         REFERENCE_SEED).mean_return}
+            "expert_return": r_expert, "random_return": r_random}
 
 
 def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,
               log=_print) -> str:
     """Roll the expert, keep the best `keep` non-terminated episodes, measure references,
     and write tasks/data/<demo file>. Returns the path."""
-    from bench.evaluator import EvalConfig, Evaluator, random_policy
-
     task = make_task(task_name)
     if task.spec.demo is None:
         raise ValueError(f"task {task_name!r} names no demo file in tasks/registry.py; add "
                          f"demo='{task_name}.npz' to its TaskSpec first")
     policy = expert_policy(task_name)
-    # init_keys: one per candidate episode; env.reset(init_key) is the demo's s_0.
-    init_keys = jax.random.split(jax.random.PRNGKey(seed), rollouts)
-    # The rollout splits each key into (reset, action) keys: store the reset key.
+    # init_keys: one per candidate episode. The rollout splits each key into (reset, action)
+    # keys: store the reset key (env.reset(reset_key) is the demo's s_0).
+    init_keys, r, ended, returns = _candidates(task, policy, rollouts, seed)
     reset_keys = np.asarray(jax.vmap(lambda k: jax.random.split(k)[0])(init_keys))
-    r = rollout(task, policy, init_keys)
-    ok = ~r["dones"].astype(bool).any(axis=1)
-    returns = r["rewards"].sum(1)
-    order = [i for i in np.argsort(-returns) if ok[i]][:keep]
+    order = [i for i in np.argsort(-returns) if not ended[i]][:keep]
     if not order:
         raise RuntimeError(f"task {task_name!r}: every expert rollout terminated early; the "
                            "expert is not good enough for a demo")
-    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True))
-    r_expert = ev.evaluate(policy, REFERENCE_SEED).mean_return
-    r_random = ev.evaluate(random_policy(task.action_size), REFERENCE_SEED).mean_return
+    r_expert, r_random = _references(task, policy)
     _, meta_path = expert_paths(task_name)
     if task_name in _HANDMADE:
         expert_meta = {"source": _HANDMADE[task_name]}
