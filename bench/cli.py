@@ -34,12 +34,12 @@ def _budget(args):
                   charge_compile=not args.no_charge_compile, evals=args.evals)
 
 
-def _overrides(pairs):
+def _overrides(pairs, flag="--set"):
     out = {}
     for p in pairs or []:
         k, sep, v = p.partition("=")
         if not sep or not k:
-            raise ValueError(f"--set expects key=value, got {p!r}")
+            raise ValueError(f"{flag} expects key=value, got {p!r}")
         out[k.strip()] = v.strip()
     return out
 
@@ -265,10 +265,15 @@ def cmd_expert(args):
     from tasks.expert import make_demo, train_expert
     get_spec(args.task)  # unknown task -> error listing valid ones
     if args.expert_cmd == "train":
+        from tasks.expert import default_algorithm, train_trajopt_expert
+        if (args.algorithm or default_algorithm(args.task)) == "trajopt":
+            train_trajopt_expert(args.task, seed=args.seed, out_dir=args.out)
+            return 0
         train_expert(args.task, seed=args.seed, num_timesteps=args.steps, preset=args.preset,
                      time_limit_s=parse_seconds(args.time_limit) if args.time_limit else None,
                      out_dir=args.out, resume=args.resume,
-                     overrides=dict(kv.split("=", 1) for kv in args.set or []))
+                     overrides=_overrides(args.set),
+                     env_overrides=_overrides(args.env_set, "--env-set"))
     elif args.expert_cmd == "inspect":
         from tasks.expert import inspect_expert
         for k, v in inspect_expert(args.task, args.params, args.rollouts).items():
@@ -411,6 +416,9 @@ def build_parser():
     e = esub.add_parser("train", help="train a PPO expert for a task")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--algorithm", default=None, choices=["ppo", "trajopt"],
+                   help="brax PPO, or open-loop trajectory optimization through the physics "
+                        "(default: the task's, tasks.expert.TRAJOPT_CONFIGS: acrobot)")
     e.add_argument("--steps", type=int, default=None, help="override PPO num_timesteps")
     e.add_argument("--preset", default="cpu", choices=["cpu", "gpu"],
                    help="PPO recipe table: cpu (256 envs) or gpu (brax's recipes, 2048-4096 envs)")
@@ -423,6 +431,9 @@ def build_parser():
                    help="continue from the best evaluation of a run written there with --out")
     e.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a PPO setting of the recipe (repeatable)")
+    e.add_argument("--env-set", action="append", metavar="KEY=VALUE",
+                   help="training-only environment argument, e.g. healthy_reward=3 (reward "
+                        "shaping of the demonstrator; demos and scores use the task's own env)")
     e = esub.add_parser("demo", help="roll the expert into the task's demo file")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)

@@ -1,6 +1,8 @@
 """Swing-up acrobot, the paper's brax-v1 task rebuilt as a minimal two-link MJCF.
 
 Facts: shared/reference/acrobot_facts.md. Physics dt 0.0025 x 4 substeps = 0.01 s per step.
+Each link's inertia about its centre of mass is brax v1's default for a body given none,
+(1, 1, 1) (tasks/assets/acrobot.xml), not the capsule's own.
 
 Observation: (theta1, theta2, dtheta1, dtheta2), angles wrapped to [-pi, pi] (as v1's
 joint angles, read from relative rotations, were). Action: one elbow torque in [-1, 1]

@@ -112,6 +112,97 @@ PPO_GPU_CONFIGS: dict[str, dict] = {
     "inverted_pendulum": dict(_GPU_BASE, episode_length=128, num_timesteps=10_000_000),
 }
 PRESETS = {"cpu": PPO_CONFIGS, "gpu": PPO_GPU_CONFIGS}
+# Training-only environment arguments per preset and task (reward shaping of the
+# demonstrator; see training_env_kwargs).
+TRAIN_ENV: dict[str, dict[str, dict]] = {"cpu": {}, "gpu": {}}
+
+# Open-loop experts: trajectory optimization through the task's own differentiable physics,
+# for tasks whose reset noise is small and where brax's trainers measured no better than
+# random (acrobot: PPO and brax's APG stayed at random's level, README, Demos). `starts`
+# torque sequences a * sin(w t + phase) (w spread over [min_freq, max_freq] rad/s, random
+# phases; tanh-squashed) are each optimized with Adam on the 128-step return from one
+# initial state; the kept one has the best mean return over `select_episodes` fresh initial
+# states. The expert then plays that action table regardless of the observation.
+TRAJOPT_CONFIGS: dict[str, dict] = {
+    "acrobot": dict(starts=32, steps=300, learning_rate=0.1, amplitude=3.0, min_freq=2.0,
+                    max_freq=12.0, select_episodes=16),
+}
+ALGORITHMS = ("ppo", "trajopt")
+
+
+def default_algorithm(task_name: str) -> str:
+    return "trajopt" if task_name in TRAJOPT_CONFIGS else "ppo"
+
+
+def train_trajopt_expert(task_name: str, seed: int = 0, log=_print,
+                         out_dir: str | None = None, config: dict | None = None) -> str:
+    """Optimize an open-loop action table (TRAJOPT_CONFIGS) and store it as the task's
+    expert (<task>_expert.msgpack: {'actions': (T, action_size)}, json beside it)."""
+    import optax
+
+    from bench.runner import machine
+    cfg = dict(config if config is not None else TRAJOPT_CONFIGS.get(task_name, {}))
+    if not cfg:
+        raise ValueError(f"no trajectory-optimization recipe for task {task_name!r}; recipes "
+                         f"exist for {', '.join(sorted(TRAJOPT_CONFIGS))}")
+    task = make_task(task_name)
+    env, T, A, n = task.env, task.episode_length, task.action_size, int(cfg["starts"])
+    t0 = time.perf_counter()
+
+    def episode_return(u, key):  # u: (T, A) unsquashed torques
+        def body(s, a):
+            s = env.step(s, jnp.tanh(a))
+            return s, s.reward
+        return jax.lax.scan(body, env.reset(key), u)[1].sum()
+
+    k_phase, k_fit, k_select = jax.random.split(jax.random.PRNGKey(seed), 3)
+    t = jnp.arange(T, dtype=jnp.float32) * float(env.dt)
+    freq = jnp.linspace(cfg["min_freq"], cfg["max_freq"], n)
+    phase = jax.random.uniform(k_phase, (n, A), maxval=2 * np.pi)
+    u = cfg["amplitude"] * jnp.sin(freq[:, None, None] * t[None, :, None] + phase[:, None, :])
+    fit_keys = jax.random.split(k_fit, n)
+    loss_grad = jax.vmap(jax.value_and_grad(lambda u, k: -episode_return(u, k)))
+    opt = optax.adam(cfg["learning_rate"])
+
+    @jax.jit
+    def update(u, opt_state):
+        loss, g = loss_grad(u, fit_keys)
+        upd, opt_state = jax.vmap(opt.update)(g, opt_state)
+        return optax.apply_updates(u, upd), opt_state, -loss
+
+    opt_state = jax.vmap(opt.init)(u)
+    history = []
+    for i in range(int(cfg["steps"])):
+        u, opt_state, rets = update(u, opt_state)
+        if i % 50 == 49 or i == int(cfg["steps"]) - 1:
+            rets = np.asarray(rets)
+            history.append({"step": i + 1, "best": round(float(rets.max()), 3),
+                            "median": round(float(np.median(rets)), 3)})
+            log(f"[{task_name}] trajopt step {i + 1}/{cfg['steps']}: return best "
+                f"{rets.max():.2f}, median {np.median(rets):.2f}  elapsed "
+                f"{time.perf_counter() - t0:.0f}s")
+    select_keys = jax.random.split(k_select, int(cfg["select_episodes"]))
+    held_out = np.asarray(jax.jit(jax.vmap(jax.vmap(episode_return, (None, 0)), (0, None)))(
+        u, select_keys)).mean(axis=1)
+    best = int(np.argmax(held_out))
+    actions = np.asarray(jnp.tanh(u[best]), np.float32)
+    param_path, meta_path = expert_paths(task_name)
+    if out_dir is not None:
+        param_path = os.path.join(out_dir, os.path.basename(param_path))
+        meta_path = os.path.join(out_dir, os.path.basename(meta_path))
+    os.makedirs(os.path.dirname(param_path), exist_ok=True)
+    with open(param_path, "wb") as f:
+        f.write(serialization.msgpack_serialize({"actions": actions}))
+    with open(meta_path, "w") as f:
+        json.dump({"task": task_name, "algorithm": "trajopt", "seed": seed, "trajopt": cfg,
+                   "chosen_start": best, "select_returns": [round(float(r), 3) for r in held_out],
+                   "complete": True, "wall_clock_s": round(time.perf_counter() - t0, 1),
+                   "machine": machine(), "versions": library_versions(), "history": history},
+                  f, indent=1, sort_keys=True)
+    log(f"[{task_name}] open-loop expert saved to {param_path} (start {best}: mean return "
+        f"{held_out[best]:.2f} over {len(select_keys)} held-out initial states; "
+        f"{time.perf_counter() - t0:.0f}s)")
+    return param_path
 
 
 class _TimeUp(Exception):
@@ -145,10 +236,33 @@ def ppo_config(task_name: str, preset: str = "cpu", num_timesteps: int | None = 
     return cfg
 
 
+def training_env_kwargs(task_name: str, preset: str = "cpu",
+                        env_overrides: dict | None = None) -> dict:
+    """The environment arguments the expert trains with: the recipe's `TRAIN_ENV` shaping
+    (an expert is only a demonstrator, so its training reward may differ from the task's),
+    then `env_overrides` (`--env-set`, values parsed as numbers or true/false). Demos,
+    references and every score use the task's own environment."""
+    import inspect
+
+    from tasks.core import _build_env
+    from tasks.registry import get_spec
+    kw = dict(TRAIN_ENV.get(preset, {}).get(task_name, {}))
+    if env_overrides:
+        spec = get_spec(task_name)
+        accepted = inspect.signature(type(_build_env(spec)).__init__).parameters
+        for k, v in env_overrides.items():
+            if k not in accepted or k in ("self", "sys", "backend"):
+                raise ValueError(f"--env-set: {spec.env} takes no argument {k!r}; it takes "
+                                 f"{', '.join(a for a in accepted if a not in ('self', 'kwargs', 'backend'))}")
+            low = str(v).lower()
+            kw[k] = low == "true" if low in ("true", "false") else float(v)
+    return kw
+
+
 def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None,
                  log=_print, preset: str = "cpu", time_limit_s: float | None = None,
                  out_dir: str | None = None, resume: str | None = None,
-                 overrides: dict | None = None) -> str:
+                 overrides: dict | None = None, env_overrides: dict | None = None) -> str:
     """Train a PPO expert and store it; returns the parameter file path.
 
     The stored parameters are those of the best evaluation so far (brax's eval return over
@@ -166,6 +280,17 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         log(f"[{task_name}] jax {jax.__version__}: restored {', '.join(shims)} for brax")
     cfg = ppo_config(task_name, preset, num_timesteps, overrides)
     task = make_task(task_name)
+    train_env = training_env_kwargs(task_name, preset, env_overrides)
+    env = task.env
+    if train_env:
+        import dataclasses
+
+        from tasks.core import build_env
+        spec = task.spec
+        env = build_env(dataclasses.replace(
+            spec, env_kwargs=tuple({**spec.kwargs(), **train_env}.items())))
+        log(f"[{task_name}] training environment shaped: {train_env} (demos and scores use "
+            f"the task's own)")
     param_path, meta_path = expert_paths(task_name)
     if out_dir is not None:
         param_path = os.path.join(out_dir, os.path.basename(param_path))
@@ -186,7 +311,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
     def write_meta(complete):
         with open(meta_path, "w") as f:
             json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "preset": preset,
-                       "ppo": cfg, "best_eval_step": best["step"],
+                       "ppo": cfg, "train_env": train_env, "best_eval_step": best["step"],
                        "best_eval_return": best["ret"], "complete": complete,
                        "resumed_from": resumed,
                        "wall_clock_s": round(time.perf_counter() - t0, 1),
@@ -231,7 +356,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         consider()
 
     try:
-        ppo.train(environment=task.env, seed=seed, progress_fn=progress,
+        ppo.train(environment=env, seed=seed, progress_fn=progress,
                   policy_params_fn=on_params, restore_params=restore, **cfg)
         complete = True
     except _TimeUp:
@@ -281,6 +406,24 @@ def expert_policy(task_name: str):
     if not os.path.exists(param_path):
         raise FileNotFoundError(f"task {task_name!r} has no expert at {param_path}; train one "
                                 f"with `ildbench expert train --task {task_name}`")
+    return load_expert_policy(task_name, param_path)
+
+
+def load_expert_policy(task_name: str, param_path: str):
+    """An expert parameter file as a bench.api.Policy: an open-loop action table
+    (trajopt experts) or PPO's normalizer + policy."""
+    from bench.api import Policy
+    with open(param_path, "rb") as f:
+        raw = serialization.msgpack_restore(f.read())
+    if "actions" in raw:
+        actions = np.asarray(raw["actions"])
+        task = make_task(task_name)
+        if actions.shape != (task.episode_length, task.action_size):
+            raise ValueError(f"{param_path}: an open-loop expert for {task_name!r} needs actions "
+                             f"of shape {(task.episode_length, task.action_size)}, found "
+                             f"{actions.shape}; retrain it with `ildbench expert train --task "
+                             f"{task_name}`")
+        return Policy(act=_open_loop_act, params=jnp.asarray(actions), init_memory=_step_zero)
     return load_ppo_policy(task_name, param_path)
 
 
@@ -382,7 +525,7 @@ def inspect_expert(task_name: str, param_path: str | None = None, rollouts: int 
     evaluator's R_expert and R_random. `ildbench expert inspect` prints it."""
     task = make_task(task_name)
     param_path = param_path or expert_paths(task_name)[0]
-    policy = load_ppo_policy(task_name, param_path)
+    policy = load_expert_policy(task_name, param_path)
     _, r, ended, ret = _candidates(task, policy, rollouts, seed)
     dones = r["dones"].astype(bool)
     r_expert, r_random = _references(task, policy)
@@ -416,8 +559,11 @@ def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,
     if task_name in _HANDMADE:
         expert_meta = {"source": _HANDMADE[task_name]}
     else:
-        expert_meta = {"source": "brax PPO", **{k: v for k, v in json.load(open(meta_path)).items()
-                                                if k in ("seed", "ppo", "wall_clock_s")}}
+        record = json.load(open(meta_path))
+        source = {"trajopt": "open-loop trajectory optimization through the task's physics"}
+        expert_meta = {"source": source.get(record.get("algorithm"), "brax PPO"),
+                       **{k: v for k, v in record.items()
+                          if k in ("seed", "ppo", "trajopt", "train_env", "wall_clock_s")}}
     demo = Demo(
         obs=r["obs"][order].astype(np.float32), states=r["states"][order].astype(np.float32),
         actions=r["actions"][order].astype(np.float32),

@@ -122,7 +122,7 @@ def test_demo_of_another_width_is_rejected(demo, tmp_path):
 REPLAY_ATOL = {"hopper": 5e-4, "humanoid": 5e-4, "swimmer": 5e-5, "ant": 1e-4}
 
 
-@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher"]
+@pytest.mark.parametrize("name", ["pointmass", "inverted_pendulum", "reacher", "acrobot"]
                          + [pytest.param(n, marks=pytest.mark.slow)
                             for n in ("hopper", "ant", "humanoid", "swimmer")])
 def test_replaying_demo_actions_reproduces_states(name):

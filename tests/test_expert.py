@@ -34,7 +34,7 @@ def _fake_ppo(evals, calls):
     """brax PPO's callback order: initial evaluation, then its parameters; in the loop the
     parameters of step s first, then the evaluation of those same parameters."""
     def train(environment, seed, progress_fn, policy_params_fn, restore_params=None, **cfg):
-        calls.append(restore_params)
+        calls.append((restore_params, environment))
         p = lambda v: (np.float32(v), {"w": np.full(2, v, np.float32)},
                        {"v": np.float32(-v)})
         progress_fn(0, {"eval/episode_reward": evals[0]})
@@ -88,6 +88,54 @@ def test_time_limit_stops_at_an_evaluation_and_keeps_the_best(fake_train):
 def test_no_finite_evaluation_saves_nothing(fake_train):
     with pytest.raises(RuntimeError, match="no finite evaluation return"):
         fake_train([float("nan"), float("nan")])
+
+
+def test_training_env_shaping_reaches_the_trainer_and_the_record(fake_train):
+    _, meta, _, calls = fake_train([1.0, 2.0], env_overrides={"healthy_reward": "0.5",
+                                                              "terminate_when_unhealthy": "false"})
+    env = calls[-1][1].unwrapped
+    assert env._healthy_reward == 0.5 and env._terminate_when_unhealthy is False
+    assert meta["train_env"] == {"healthy_reward": 0.5, "terminate_when_unhealthy": False}
+    # Without shaping the trainer gets the task's own environment.
+    _, meta, _, calls = fake_train([1.0, 2.0])
+    assert meta["train_env"] == {} and calls[-1][1] is expert.make_task("ant").env
+    with pytest.raises(ValueError, match="brax:ant takes no argument 'healthy'.*healthy_reward"):
+        expert.training_env_kwargs("ant", "gpu", {"healthy": "1"})
+
+
+def test_trajopt_expert_improves_and_replays_its_own_numbers(tmp_path):
+    """The open-loop expert (acrobot's) on pointmass: Adam raises every start's return above
+    its sinusoid's, the kept start is the one with the best held-out mean, and the stored
+    table replayed by the loaded Policy earns what the record says."""
+    cfg = dict(starts=3, steps=60, learning_rate=0.1, amplitude=1.0, min_freq=1.0,
+               max_freq=3.0, select_episodes=4)
+    path = expert.train_trajopt_expert("pointmass", seed=0, log=lambda *a: None,
+                                       out_dir=str(tmp_path), config=cfg)
+    steps0 = dict(cfg, steps=1)
+    expert.train_trajopt_expert("pointmass", seed=0, log=lambda *a: None,
+                                out_dir=str(tmp_path / "start"), config=steps0)
+    meta = json.load(open(tmp_path / "pointmass_expert.json"))
+    before = json.load(open(tmp_path / "start" / "pointmass_expert.json"))
+    assert meta["algorithm"] == "trajopt" and meta["trajopt"] == cfg
+    assert min(meta["select_returns"]) > max(before["select_returns"])
+    assert meta["chosen_start"] == int(np.argmax(meta["select_returns"]))
+    stored = expert.serialization.msgpack_restore(open(path, "rb").read())["actions"]
+    task = expert.make_task("pointmass")
+    env = task.env
+    select_keys = jax.random.split(jax.random.split(jax.random.PRNGKey(0), 3)[2], 4)
+
+    def replay(key):
+        return jax.lax.scan(lambda s, a: (env.step(s, a), env.step(s, a).reward),
+                            env.reset(key), jnp.asarray(stored))[1].sum()
+    held_out = np.asarray(jax.vmap(replay)(select_keys)).mean()
+    assert held_out == pytest.approx(meta["select_returns"][meta["chosen_start"]], abs=1e-3)
+    # The loaded Policy plays the table whatever it observes.
+    policy = expert.load_expert_policy("pointmass", path)
+    r = expert.rollout(task, policy, jax.random.split(jax.random.PRNGKey(5), 2))
+    np.testing.assert_array_equal(r["actions"][0], stored)
+    np.testing.assert_array_equal(r["actions"][1], stored)
+    with pytest.raises(ValueError, match="no trajectory-optimization recipe for task 'ant'"):
+        expert.train_trajopt_expert("ant", out_dir=str(tmp_path))
 
 
 def test_resume_names_missing_files(tmp_path):
