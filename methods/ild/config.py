@@ -120,6 +120,11 @@ TASK_OVERRIDES: dict[str, dict] = {
     # loss (0.05 -> 1-3) and fell from 1.00 to 0.841, 0.933, 0.450 (grid, 3 min cpu); with
     # 128 the loss falls (0.051 -> 0.024) and the score stays 1.000 (README ILD section).
     "inverted_pendulum": {"truncation": 128},
+    # acrobot: full BPTT too. From the BC warm start the truncation-10 gradient's cosine with
+    # the true one is -0.389 and Adam's first step along it raises the loss (lr 1e-3: 2.00x),
+    # at 128 the cosine is 1.000 (`python -m methods.ild.probe --task acrobot --num-envs 32
+    # --truncation W`, session 11): a swing-up's early torques pay off many steps later.
+    "acrobot": {"truncation": 128},
     # The original's cloth setting: 10 parallel rollouts (one update of 10 x 80 steps costs
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.
