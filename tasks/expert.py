@@ -46,11 +46,10 @@ PPO_CONFIGS: dict[str, dict] = {
     "inverted_pendulum": dict(_PPO_BASE, num_timesteps=1_000_000, discounting=0.97),
     "reacher": dict(_PPO_BASE, num_timesteps=1_500_000, reward_scaling=5.0,
                     entropy_cost=1e-3),
-    # acrobot: with discounting 0.97 (a ~33-step, 0.33 s horizon) 10M steps (1290 s, 1 core)
-    # reached eval return 96.6 with random at 82.0: it never learned to pump energy into a
-    # swing-up. Discounting 0.99 did worse (eval return 60 at 4.3M steps, falling; stopped).
-    # Not solved yet (issue 3): next to try are a longer training episode than the 128-step
-    # demo (as for walker2d) and SAC.
+    # acrobot (its expert is open-loop trajopt, TRAJOPT_CONFIGS; this PPO recipe stays for
+    # comparison): on the old capsule-inertia model, discounting 0.97 reached 96.6 in 10M
+    # steps (random 82.0) and 0.99 did worse; on the corrected model (v1's inertia, session
+    # 11) discounting 0.99 peaked at 84.7 (random 67.7) at 0.5M steps and fell to 63 by 2.1M.
     "acrobot": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.97,
                     reward_scaling=1.0),
     "swimmer": dict(_PPO_BASE, num_timesteps=10_000_000, discounting=0.995),
