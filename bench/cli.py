@@ -267,6 +267,14 @@ def cmd_expert(args):
     if args.expert_cmd == "train":
         from tasks.expert import default_algorithm, train_trajopt_expert
         if (args.algorithm or default_algorithm(args.task)) == "trajopt":
+            ppo_only = [flag for flag, v in (("--steps", args.steps), ("--time-limit", args.time_limit),
+                                             ("--resume", args.resume), ("--set", args.set),
+                                             ("--env-set", args.env_set)) if v]
+            if ppo_only or args.preset != "cpu":
+                raise ValueError(f"{', '.join(ppo_only or ['--preset'])}: PPO settings, but "
+                                 f"{args.task!r} trains by trajectory optimization "
+                                 f"(TRAJOPT_CONFIGS in tasks/expert.py); drop them, or pass "
+                                 f"--algorithm ppo")
             train_trajopt_expert(args.task, seed=args.seed, out_dir=args.out)
             return 0
         train_expert(args.task, seed=args.seed, num_timesteps=args.steps, preset=args.preset,
@@ -413,7 +421,8 @@ def build_parser():
     esub = p.add_subparsers(dest="expert_cmd", required=True)
     _eadd = esub.add_parser
     esub.add_parser = lambda *a, **k: _eadd(*a, parents=[common], **k)
-    e = esub.add_parser("train", help="train a PPO expert for a task")
+    e = esub.add_parser("train", help="train a task's expert (brax PPO; open-loop trajectory "
+                                      "optimization for acrobot)")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--algorithm", default=None, choices=["ppo", "trajopt"],

@@ -126,7 +126,6 @@ TRAJOPT_CONFIGS: dict[str, dict] = {
     "acrobot": dict(starts=32, steps=300, learning_rate=0.1, amplitude=3.0, min_freq=2.0,
                     max_freq=12.0, select_episodes=16),
 }
-ALGORITHMS = ("ppo", "trajopt")
 
 
 def default_algorithm(task_name: str) -> str:

@@ -32,6 +32,12 @@ def _run(capsys, *argv):
      "task 'walker2d' has no demo yet"),
     (["sweep", "--methods", "bc", "--tasks", "pointmass", "nope", "--budget", "5s"],
      "unknown task 'nope'"),
+    (["expert", "train", "--task", "acrobot", "--set", "discounting=0.9"],
+     "--set: PPO settings, but 'acrobot' trains by trajectory optimization"),
+    (["expert", "train", "--task", "walker2d", "--env-set", "healthy=3"],
+     "--env-set: brax:walker2d takes no argument 'healthy'"),
+    (["expert", "train", "--task", "walker2d", "--env-set", "healthy_reward"],
+     "--env-set expects key=value"),
 ])
 def test_bad_input_is_a_clear_error_and_writes_nothing(argv, match, capsys, tmp_path):
     store = str(tmp_path / "runs")
