@@ -111,9 +111,6 @@ PPO_GPU_CONFIGS: dict[str, dict] = {
     "inverted_pendulum": dict(_GPU_BASE, episode_length=128, num_timesteps=10_000_000),
 }
 PRESETS = {"cpu": PPO_CONFIGS, "gpu": PPO_GPU_CONFIGS}
-# Training-only environment arguments per preset and task (reward shaping of the
-# demonstrator; see training_env_kwargs).
-TRAIN_ENV: dict[str, dict[str, dict]] = {"cpu": {}, "gpu": {}}
 
 # Open-loop experts: trajectory optimization through the task's own differentiable physics,
 # for tasks whose reset noise is small and where brax's trainers measured no better than
@@ -184,11 +181,7 @@ def train_trajopt_expert(task_name: str, seed: int = 0, log=_print,
         u, select_keys)).mean(axis=1)
     best = int(np.argmax(held_out))
     actions = np.asarray(jnp.tanh(u[best]), np.float32)
-    param_path, meta_path = expert_paths(task_name)
-    if out_dir is not None:
-        param_path = os.path.join(out_dir, os.path.basename(param_path))
-        meta_path = os.path.join(out_dir, os.path.basename(meta_path))
-    os.makedirs(os.path.dirname(param_path), exist_ok=True)
+    param_path, meta_path = _output_paths(task_name, out_dir)
     with open(param_path, "wb") as f:
         f.write(serialization.msgpack_serialize({"actions": actions}))
     with open(meta_path, "w") as f:
@@ -234,27 +227,32 @@ def ppo_config(task_name: str, preset: str = "cpu", num_timesteps: int | None = 
     return cfg
 
 
-def training_env_kwargs(task_name: str, preset: str = "cpu",
-                        env_overrides: dict | None = None) -> dict:
-    """The environment arguments the expert trains with: the recipe's `TRAIN_ENV` shaping
-    (an expert is only a demonstrator, so its training reward may differ from the task's),
-    then `env_overrides` (`--env-set`, values parsed as numbers or true/false). Demos,
-    references and every score use the task's own environment."""
+def training_env_kwargs(task_name: str, env_overrides: dict | None = None) -> dict:
+    """Training-only environment arguments (`--env-set`: reward shaping of the demonstrator,
+    values parsed as numbers or true/false), checked against the task env's constructor.
+    Demos, references and every score use the task's own environment."""
     import inspect
 
-    from tasks.core import _build_env
-    from tasks.registry import get_spec
-    kw = dict(TRAIN_ENV.get(preset, {}).get(task_name, {}))
-    if env_overrides:
-        spec = get_spec(task_name)
-        accepted = inspect.signature(type(_build_env(spec)).__init__).parameters
-        for k, v in env_overrides.items():
-            if k not in accepted or k in ("self", "sys", "backend"):
-                raise ValueError(f"--env-set: {spec.env} takes no argument {k!r}; it takes "
-                                 f"{', '.join(a for a in accepted if a not in ('self', 'kwargs', 'backend'))}")
-            low = str(v).lower()
-            kw[k] = low == "true" if low in ("true", "false") else float(v)
+    env = make_task(task_name).env.unwrapped
+    fixed = ("self", "sys", "backend", "kwargs")
+    accepted = [a for a in inspect.signature(type(env).__init__).parameters if a not in fixed]
+    kw = {}
+    for k, v in (env_overrides or {}).items():
+        if k not in accepted:
+            raise ValueError(f"--env-set: {make_task(task_name).spec.env} takes no argument "
+                             f"{k!r}; it takes {', '.join(accepted)}")
+        low = str(v).lower()
+        kw[k] = low == "true" if low in ("true", "false") else float(v)
     return kw
+
+
+def _output_paths(task_name: str, out_dir: str | None) -> tuple[str, str]:
+    """(parameter file, json) of an expert being trained: tasks/data, or `out_dir`."""
+    paths = expert_paths(task_name)
+    if out_dir is not None:
+        paths = tuple(os.path.join(out_dir, os.path.basename(p)) for p in paths)
+    os.makedirs(os.path.dirname(paths[0]), exist_ok=True)
+    return paths
 
 
 def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None,
@@ -278,7 +276,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         log(f"[{task_name}] jax {jax.__version__}: restored {', '.join(shims)} for brax")
     cfg = ppo_config(task_name, preset, num_timesteps, overrides)
     task = make_task(task_name)
-    train_env = training_env_kwargs(task_name, preset, env_overrides)
+    train_env = training_env_kwargs(task_name, env_overrides)
     env = task.env
     if train_env:
         import dataclasses
@@ -289,11 +287,7 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
             spec, env_kwargs=tuple({**spec.kwargs(), **train_env}.items())))
         log(f"[{task_name}] training environment shaped: {train_env} (demos and scores use "
             f"the task's own)")
-    param_path, meta_path = expert_paths(task_name)
-    if out_dir is not None:
-        param_path = os.path.join(out_dir, os.path.basename(param_path))
-        meta_path = os.path.join(out_dir, os.path.basename(meta_path))
-    os.makedirs(os.path.dirname(param_path), exist_ok=True)
+    param_path, meta_path = _output_paths(task_name, out_dir)
     from bench.runner import machine
     t0 = time.perf_counter()
     history: list[dict] = []

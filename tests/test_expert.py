@@ -100,7 +100,7 @@ def test_training_env_shaping_reaches_the_trainer_and_the_record(fake_train):
     _, meta, _, calls = fake_train([1.0, 2.0])
     assert meta["train_env"] == {} and calls[-1][1] is expert.make_task("ant").env
     with pytest.raises(ValueError, match="brax:ant takes no argument 'healthy'.*healthy_reward"):
-        expert.training_env_kwargs("ant", "gpu", {"healthy": "1"})
+        expert.training_env_kwargs("ant", {"healthy": "1"})
 
 
 def test_trajopt_expert_improves_and_replays_its_own_numbers(tmp_path):
