@@ -222,7 +222,8 @@ def cmd_tradeoff(args):
         paths = tr._save(df, args.task, "substeps", out)
     elif args.part == "budget":
         df = tr.budget_table(Store(args.store), args.task,
-                             tuple(args.minutes) if args.minutes else tr.BUDGET_MINUTES)
+                             tuple(args.minutes) if args.minutes else tr.BUDGET_MINUTES,
+                             tuple(Store(d) for d in args.with_store or ()))
         paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
     else:
         from bench.budget import parse_seconds
@@ -281,7 +282,8 @@ def cmd_expert(args):
                      time_limit_s=parse_seconds(args.time_limit) if args.time_limit else None,
                      out_dir=args.out, resume=args.resume,
                      overrides=_overrides(args.set),
-                     env_overrides=_overrides(args.env_set, "--env-set"))
+                     env_overrides=_overrides(args.env_set, "--env-set"),
+                     algorithm=args.algorithm or default_algorithm(args.task))
     elif args.expert_cmd == "inspect":
         from tasks.expert import inspect_expert
         for k, v in inspect_expert(args.task, args.params, args.rollouts).items():
@@ -401,6 +403,9 @@ def build_parser():
     p.add_argument("--seeds", type=int, default=1, help="ild: seeds per cell")
     p.add_argument("--minutes", type=float, nargs="+", default=None,
                    help="budget: the budgets to read off the anytime curves (default 1 2 5 10)")
+    p.add_argument("--with-store", action="append", metavar="DIR",
+                   help="budget: also read the runs of this store (repeatable; e.g. ILD runs at "
+                        "shorter budgets kept out of the leaderboard's store)")
     p.add_argument("--out", default=None, help="default results/tradeoff")
     p.add_argument("--jax-cache", default=None)
     p.set_defaults(fn=cmd_tradeoff, force=False)  # for _run_all (the ILD grid)
@@ -421,13 +426,14 @@ def build_parser():
     esub = p.add_subparsers(dest="expert_cmd", required=True)
     _eadd = esub.add_parser
     esub.add_parser = lambda *a, **k: _eadd(*a, parents=[common], **k)
-    e = esub.add_parser("train", help="train a task's expert (brax PPO; open-loop trajectory "
-                                      "optimization for acrobot)")
+    e = esub.add_parser("train", help="train a task's expert (brax PPO; brax SAC for walker2d; "
+                                      "open-loop trajectory optimization for acrobot)")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--algorithm", default=None, choices=["ppo", "trajopt"],
-                   help="brax PPO, or open-loop trajectory optimization through the physics "
-                        "(default: the task's, tasks.expert.TRAJOPT_CONFIGS: acrobot)")
+    e.add_argument("--algorithm", default=None, choices=["ppo", "sac", "trajopt"],
+                   help="brax PPO, brax SAC (tasks.expert.SAC_CONFIGS), or open-loop "
+                        "trajectory optimization through the physics (default: the task's, "
+                        "tasks.expert.default_algorithm)")
     e.add_argument("--steps", type=int, default=None, help="override PPO num_timesteps")
     e.add_argument("--preset", default="cpu", choices=["cpu", "gpu"],
                    help="PPO recipe table: cpu (256 envs) or gpu (brax's recipes, 2048-4096 envs)")
@@ -439,7 +445,7 @@ def build_parser():
     e.add_argument("--resume", default=None, metavar="FOLDER",
                    help="continue from the best evaluation of a run written there with --out")
     e.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override a PPO setting of the recipe (repeatable)")
+                   help="override a setting of the PPO/SAC recipe (repeatable)")
     e.add_argument("--env-set", action="append", metavar="KEY=VALUE",
                    help="training-only environment argument, e.g. healthy_reward=3 (reward "
                         "shaping of the demonstrator; demos and scores use the task's own env)")

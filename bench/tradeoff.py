@@ -163,13 +163,16 @@ def cloth_substeps(substeps=CLOTH_SUBSTEPS, batch: int = 10, repeats: int = 2,
     return pd.DataFrame(rows).sort_values("substeps").reset_index(drop=True)
 
 
-def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFrame:
+def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES,
+                 more_stores: tuple = ()) -> pd.DataFrame:
     """Per method and variant (the leaderboard's: runs pool only under equal version, preset,
     config and evaluation), the mean anytime score at each budget over the runs whose
-    budget reaches it. `method` carries the variant id where a method has several."""
+    budget reaches it. `method` carries the variant id where a method has several.
+    `more_stores` adds their runs (e.g. budget-scheduled runs at shorter budgets, kept out of
+    the leaderboard's store)."""
     from bench.leaderboard import variant
     rows = []
-    for r in store.records():
+    for r in [r for s in (store, *more_stores) for r in s.records()]:
         if r["task"] != task or r.get("status") not in ("ok", "diverged"):
             continue
         secs = (r.get("budget") or {}).get("seconds")
@@ -190,7 +193,7 @@ def budget_table(store: Store, task: str, minutes=BUDGET_MINUTES) -> pd.DataFram
     df = pd.DataFrame(rows, columns=["method", "variant", "minutes", "seed", "normalized"])
     if df.empty:
         raise ValueError(f"no finished runs on {task!r} with a wall-clock budget in "
-                         f"{store.root}")
+                         f"{', '.join(str(s.root) for s in (store, *more_stores))}")
     several = df.groupby("method").variant.nunique()
     df["method"] = [f"{m} ({v})" if several[m] > 1 else m
                     for m, v in zip(df.method, df.variant)]

@@ -112,6 +112,20 @@ PPO_GPU_CONFIGS: dict[str, dict] = {
 }
 PRESETS = {"cpu": PPO_CONFIGS, "gpu": PPO_GPU_CONFIGS}
 
+# SAC settings per task (brax SAC keyword arguments; `ildbench expert train --algorithm sac`),
+# for tasks where PPO found no expert (walker2d: PPO lunges and falls, or only stands; README,
+# Demos). 1000-step episodes so that falling always costs the rest of the episode; one
+# gradient update per 16 env steps (grad_updates_per_step 8 with 128 envs) keeps an update
+# cheap enough for one CPU core (~11 ms at batch 256 with 256-256 networks, measured).
+SAC_CONFIGS: dict[str, dict] = {
+    "walker2d": dict(num_timesteps=10_000_000, episode_length=1000, num_envs=128,
+                     batch_size=256, learning_rate=6e-4, discounting=0.99, reward_scaling=5.0,
+                     normalize_observations=True, grad_updates_per_step=8,
+                     min_replay_size=8192, max_replay_size=1_000_000, num_evals=100,
+                     num_eval_envs=32, deterministic_eval=True),
+}
+RECIPES = {"ppo": PRESETS, "sac": {"cpu": SAC_CONFIGS}}
+
 # Open-loop experts: trajectory optimization through the task's own differentiable physics,
 # for tasks whose reset noise is small and where brax's trainers measured no better than
 # random (acrobot: PPO and brax's APG stayed at random's level, README, Demos). `starts`
@@ -126,7 +140,10 @@ TRAJOPT_CONFIGS: dict[str, dict] = {
 
 
 def default_algorithm(task_name: str) -> str:
-    return "trajopt" if task_name in TRAJOPT_CONFIGS else "ppo"
+    """How a task's committed expert was trained: trajopt (acrobot), SAC (walker2d), else PPO."""
+    if task_name in TRAJOPT_CONFIGS:
+        return "trajopt"
+    return "sac" if task_name in SAC_CONFIGS else "ppo"
 
 
 def train_trajopt_expert(task_name: str, seed: int = 0, log=_print,
@@ -201,12 +218,19 @@ class _TimeUp(Exception):
 
 
 def ppo_config(task_name: str, preset: str = "cpu", num_timesteps: int | None = None,
-               overrides: dict | None = None) -> dict:
-    if preset not in PRESETS:
-        raise ValueError(f"unknown expert preset {preset!r}; presets: {', '.join(PRESETS)}")
-    table = PRESETS[preset]
+               overrides: dict | None = None, algorithm: str = "ppo") -> dict:
+    """The recipe of `algorithm` (ppo or sac) for a task, with --steps/--set applied."""
+    if algorithm not in RECIPES:
+        raise ValueError(f"unknown expert algorithm {algorithm!r} for these recipes; "
+                         f"algorithms: {', '.join(RECIPES)} (trajopt has TRAJOPT_CONFIGS)")
+    algo = algorithm.upper()
+    presets = RECIPES[algorithm]
+    if preset not in presets:
+        raise ValueError(f"unknown {algo} expert preset {preset!r}; presets: "
+                         f"{', '.join(presets)}")
+    table = presets[preset]
     if task_name not in table:
-        raise ValueError(f"no PPO expert recipe for task {task_name!r} in preset {preset!r}; "
+        raise ValueError(f"no {algo} expert recipe for task {task_name!r} in preset {preset!r}; "
                          f"recipes exist for {', '.join(sorted(table))} (pointmass and cloth "
                          f"have hand-made experts)")
     cfg = dict(table[task_name])
@@ -216,11 +240,12 @@ def ppo_config(task_name: str, preset: str = "cpu", num_timesteps: int | None = 
         cfg["num_timesteps"] = int(num_timesteps)
     for k, v in (overrides or {}).items():
         if k not in cfg:
-            raise ValueError(f"unknown PPO setting {k!r} for the {preset} recipe of {task_name!r}; "
+            raise ValueError(f"unknown {algo} setting {k!r} for the {preset} recipe of "
+                             f"{task_name!r}; "
                              f"settings: {', '.join(sorted(cfg))}")
         if isinstance(cfg[k], bool):
             if str(v).lower() not in ("true", "false"):
-                raise ValueError(f"PPO setting {k!r} takes true or false, got {v!r}")
+                raise ValueError(f"{algo} setting {k!r} takes true or false, got {v!r}")
             cfg[k] = str(v).lower() == "true"
         else:
             cfg[k] = type(cfg[k])(float(v)) if isinstance(cfg[k], int) else type(cfg[k])(v)
@@ -258,23 +283,31 @@ def _output_paths(task_name: str, out_dir: str | None) -> tuple[str, str]:
 def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None,
                  log=_print, preset: str = "cpu", time_limit_s: float | None = None,
                  out_dir: str | None = None, resume: str | None = None,
-                 overrides: dict | None = None, env_overrides: dict | None = None) -> str:
-    """Train a PPO expert and store it; returns the parameter file path.
+                 overrides: dict | None = None, env_overrides: dict | None = None,
+                 algorithm: str = "ppo") -> str:
+    """Train a PPO (or SAC: `algorithm="sac"`) expert and store it; returns the parameter
+    file path.
 
     The stored parameters are those of the best evaluation so far (brax's eval return over
     the recipe's episode length), written at every improvement, so an interrupted or
     time-limited training (`time_limit_s`: stop at the first evaluation past it) leaves a
-    usable expert; its json says `complete: false` until training ends normally. Beside it,
-    <task>_expert_value.msgpack holds the value network (not committed: only `resume`, a
-    folder of an earlier run, reads it to continue training from its best evaluation).
+    usable expert; its json says `complete: false` until training ends normally. Beside a
+    PPO expert, <task>_expert_value.msgpack holds the value network (not committed: only
+    `resume`, a folder of an earlier run, reads it to continue training from its best
+    evaluation). brax's SAC hands out no parameters during training, so a SAC run writes
+    brax checkpoints at each evaluation into a scratch folder and keeps the best one's
+    normalizer and policy (SAC runs cannot resume: the replay buffer is not saved).
     """
+    if algorithm == "sac" and resume is not None:
+        raise ValueError("--resume continues PPO runs only (brax SAC's replay buffer is not "
+                         "saved); rerun SAC from its seed")
     from brax.training.agents.ppo import train as ppo
 
     from tasks.jax_compat import apply as jax_compat
     shims = jax_compat()
     if shims:
         log(f"[{task_name}] jax {jax.__version__}: restored {', '.join(shims)} for brax")
-    cfg = ppo_config(task_name, preset, num_timesteps, overrides)
+    cfg = ppo_config(task_name, preset, num_timesteps, overrides, algorithm)
     task = make_task(task_name)
     train_env = training_env_kwargs(task_name, env_overrides)
     env = task.env
@@ -302,8 +335,9 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
 
     def write_meta(complete):
         with open(meta_path, "w") as f:
-            json.dump({"task": task_name, "algorithm": "brax PPO", "seed": seed, "preset": preset,
-                       "ppo": cfg, "train_env": train_env, "best_eval_step": best["step"],
+            json.dump({"task": task_name, "algorithm": f"brax {algorithm.upper()}", "seed": seed,
+                       "preset": preset, algorithm: cfg, "train_env": train_env,
+                       "best_eval_step": best["step"],
                        "best_eval_return": best["ret"], "complete": complete,
                        "resumed_from": resumed,
                        "wall_clock_s": round(time.perf_counter() - t0, 1),
@@ -311,9 +345,15 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
                        "evals": history}, f, indent=1, sort_keys=True)
 
     def write(params):
-        state = serialization.to_state_dict({"normalizer": params[0], "policy": params[1]})
+        state = jax.tree.map(np.asarray, serialization.to_state_dict(
+            {"normalizer": params[0], "policy": params[1]}))
+        if algorithm == "sac":
+            state["algorithm"] = "sac"  # a plain string: msgpack stores it as such
         with open(param_path, "wb") as f:
-            f.write(serialization.msgpack_serialize(jax.tree.map(np.asarray, state)))
+            f.write(serialization.msgpack_serialize(state))
+        if len(params) < 3:
+            write_meta(complete=False)
+            return
         with open(value_path, "wb") as f:
             f.write(serialization.msgpack_serialize(
                 serialization.to_state_dict(jax.tree.map(np.asarray, params[2]))))
@@ -338,23 +378,49 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         left = el / max(step, 1) * (cfg["num_timesteps"] - step) if step else float("nan")
         log(f"[{task_name}] steps {step:>11,d}/{cfg['num_timesteps']:,d}  eval return "
             f"{ret:9.2f}  elapsed {el:6.0f}s  left ~{left:6.0f}s")
-        pending.update(ret=ret, r_step=int(step))
-        consider()
+        if algorithm == "sac":
+            sac_checkpoint(int(step), ret)
+        else:
+            pending.update(ret=ret, r_step=int(step))
+            consider()
         if step and time_limit_s is not None and el > time_limit_s:
             raise _TimeUp
+
+    import shutil
+    import tempfile
+    ckpt_dir = tempfile.mkdtemp(prefix=f"ildbench-{task_name}-sac-") if algorithm == "sac" else None
+
+    def sac_checkpoint(step, ret):
+        """brax SAC saved this evaluation's (normalizer, policy) under ckpt_dir/<step>
+        (nothing at step 0, the untrained policy's evaluation)."""
+        path = os.path.join(ckpt_dir, f"{step:012d}")
+        if step and os.path.isdir(path):
+            if np.isfinite(ret) and ret > best["ret"]:
+                from brax.training import checkpoint
+                best.update(ret=ret, step=step)
+                write(tuple(jax.tree.map(np.asarray, tuple(checkpoint.load(path)))))
+            shutil.rmtree(path)
 
     def on_params(step, make_policy, params):
         pending.update(params=jax.tree.map(np.asarray, params), p_step=int(step))
         consider()
 
     try:
-        ppo.train(environment=env, seed=seed, progress_fn=progress,
-                  policy_params_fn=on_params, restore_params=restore, **cfg)
+        if algorithm == "sac":
+            from brax.training.agents.sac import train as sac
+            sac.train(environment=env, seed=seed, progress_fn=progress,
+                      checkpoint_logdir=ckpt_dir, **cfg)
+        else:
+            ppo.train(environment=env, seed=seed, progress_fn=progress,
+                      policy_params_fn=on_params, restore_params=restore, **cfg)
         complete = True
     except _TimeUp:
         complete = False
         log(f"[{task_name}] time limit {time_limit_s:.0f}s reached; keeping the best "
             f"evaluation's parameters")
+    finally:
+        if ckpt_dir is not None:
+            shutil.rmtree(ckpt_dir, ignore_errors=True)
     if not np.isfinite(best["ret"]):
         raise RuntimeError(f"[{task_name}] no finite evaluation return; nothing saved")
     write_meta(complete)  # the final status (parameters: the best evaluation's)
@@ -416,7 +482,34 @@ def load_expert_policy(task_name: str, param_path: str):
                              f"{actions.shape}; retrain it with `ildbench expert train --task "
                              f"{task_name}`")
         return Policy(act=_open_loop_act, params=jnp.asarray(actions), init_memory=_step_zero)
+    if raw.get("algorithm") == "sac":
+        return load_sac_policy(task_name, param_path)
     return load_ppo_policy(task_name, param_path)
+
+
+def _sac_networks(task: Task):
+    from brax.training.acme import running_statistics
+    from brax.training.agents.sac import networks as sac_networks
+    return sac_networks.make_sac_networks(
+        task.obs_size, task.action_size,
+        preprocess_observations_fn=running_statistics.normalize)
+
+
+def load_sac_policy(task_name: str, param_path: str):
+    """A SAC expert parameter file (normalizer + policy) as a bench.api.Policy."""
+    from bench.api import Policy
+    from brax.training.acme import running_statistics
+    from brax.training.agents.sac import networks as sac_networks
+
+    task = make_task(task_name)
+    nets = _sac_networks(task)
+    template = {"normalizer": running_statistics.init_state(
+        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
+        "policy": nets.policy_network.init(jax.random.PRNGKey(0)), "algorithm": "sac"}
+    with open(param_path, "rb") as f:
+        params = serialization.from_state_dict(template, serialization.msgpack_restore(f.read()))
+    inference = sac_networks.make_inference_fn(nets)
+    return Policy(act=_PPOAct(inference), params=(params["normalizer"], params["policy"]))
 
 
 def _restore_ppo_params(task: Task, param_path: str):

@@ -1,6 +1,7 @@
 """Expert training plumbing: recipes and overrides, best-evaluation checkpointing under brax's
 callback order, the time limit, resume, and the shims for newer JAX."""
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -20,8 +21,16 @@ def test_recipes_and_overrides():
     assert expert.ppo_config("ant", "cpu", num_timesteps=5)["num_timesteps"] == 5
     with pytest.raises(ValueError, match="unknown PPO setting 'discount'.*discounting"):
         expert.ppo_config("ant", "gpu", overrides={"discount": "0.9"})
-    with pytest.raises(ValueError, match="unknown expert preset 'tpu'"):
+    with pytest.raises(ValueError, match="unknown PPO expert preset 'tpu'"):
         expert.ppo_config("ant", "tpu")
+    with pytest.raises(ValueError, match="unknown SAC expert preset 'gpu'; presets: cpu"):
+        expert.ppo_config("walker2d", "gpu", algorithm="sac")
+    with pytest.raises(ValueError, match="unknown expert algorithm 'td3'.*ppo, sac"):
+        expert.ppo_config("walker2d", algorithm="td3")
+    assert [expert.default_algorithm(t) for t in ("acrobot", "walker2d", "hopper")] == [
+        "trajopt", "sac", "ppo"]
+    sac = expert.ppo_config("walker2d", algorithm="sac", overrides={"grad_updates_per_step": "4"})
+    assert sac["grad_updates_per_step"] == 4 and sac["episode_length"] == 1000
     with pytest.raises(ValueError, match="no PPO expert recipe for task 'pointmass'"):
         expert.ppo_config("pointmass", "gpu")
     with pytest.raises(ValueError, match="takes true or false"):
@@ -101,6 +110,60 @@ def test_training_env_shaping_reaches_the_trainer_and_the_record(fake_train):
     assert meta["train_env"] == {} and calls[-1][1] is expert.make_task("ant").env
     with pytest.raises(ValueError, match="brax:ant takes no argument 'healthy'.*healthy_reward"):
         expert.training_env_kwargs("ant", {"healthy": "1"})
+
+
+def test_sac_expert_keeps_the_best_checkpoint_and_loads_as_a_policy(monkeypatch, tmp_path):
+    """brax SAC hands out no parameters during training: it saves a checkpoint per evaluation
+    (none for the untrained step-0 one) just before reporting it. The best evaluation's
+    checkpoint becomes the expert file, scratch checkpoints are removed, and the file loads
+    as a Policy that acts like brax's own SAC inference on those parameters."""
+    from brax.training import checkpoint
+    from brax.training.acme import running_statistics
+    from brax.training.agents.sac import networks as sac_networks
+    from brax.training.agents.sac import train as sac_train
+
+    task = expert.make_task("ant")
+    nets = expert._sac_networks(task)
+    norm = running_statistics.init_state(jax.ShapeDtypeStruct((task.obs_size,), jnp.float32))
+
+    def params(i):  # evaluation i's policy: the init drawn from key i
+        return norm, nets.policy_network.init(jax.random.PRNGKey(i))
+    saved, seen = {}, {}
+
+    def fake_sac(environment, seed, progress_fn, checkpoint_logdir, **cfg):
+        seen.update(cfg, env=environment)
+        progress_fn(0, {"eval/episode_reward": 100.0})  # the untrained policy: no checkpoint
+        for i, ret in enumerate([3.0, 8.0, 5.0], 1):
+            path = os.path.join(checkpoint_logdir, f"{i * 10:012d}")
+            os.makedirs(path)
+            saved[path] = params(i)
+            progress_fn(i * 10, {"eval/episode_reward": ret})
+        seen["dir"] = checkpoint_logdir
+    monkeypatch.setitem(expert.SAC_CONFIGS, "ant", expert.SAC_CONFIGS["walker2d"])
+    monkeypatch.setattr(sac_train, "train", fake_sac)
+    monkeypatch.setattr(checkpoint, "load", lambda path: list(saved[str(path)]))
+    path = expert.train_expert("ant", algorithm="sac", out_dir=str(tmp_path),
+                               log=lambda *a: None, overrides={"grad_updates_per_step": "4"})
+    meta = json.load(open(tmp_path / "ant_expert.json"))
+    assert meta["algorithm"] == "brax SAC" and meta["sac"]["grad_updates_per_step"] == 4
+    assert seen["grad_updates_per_step"] == 4 and seen["episode_length"] == 1000
+    # Step 0 scored 100 but has no checkpoint: the best kept is step 20's 8.0.
+    assert meta["best_eval_step"] == 20 and meta["best_eval_return"] == 8.0
+    assert not os.path.exists(seen["dir"])
+    assert not os.path.exists(tmp_path / "ant_expert_value.msgpack")
+    policy = expert.load_expert_policy("ant", path)
+    obs = jax.random.normal(jax.random.PRNGKey(1), (task.obs_size,))
+    want = sac_networks.make_inference_fn(nets)(params(2), deterministic=True)(
+        obs, jax.random.PRNGKey(2))[0]
+    got = policy.act(policy.params, obs, jax.random.PRNGKey(2), True)
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    other = sac_networks.make_inference_fn(nets)(params(3), deterministic=True)(
+        obs, jax.random.PRNGKey(2))[0]
+    assert np.abs(np.asarray(got) - np.asarray(other)).max() > 1e-3
+    with pytest.raises(ValueError, match="--resume continues PPO runs only"):
+        expert.train_expert("ant", algorithm="sac", resume=str(tmp_path))
+    with pytest.raises(ValueError, match="no SAC expert recipe for task 'hopper'"):
+        expert.train_expert("hopper", algorithm="sac", out_dir=str(tmp_path))
 
 
 def test_trajopt_expert_improves_and_replays_its_own_numbers(tmp_path):

@@ -110,6 +110,21 @@ def test_budget_table_reads_budget_scheduled_runs_at_their_own_budget_only(store
     assert df.minutes.tolist() == [2] and df["mean"].tolist() == pytest.approx([0.75])
 
 
+def test_budget_table_adds_the_runs_of_more_stores(store, tmp_path):
+    """Shorter-budget runs kept in their own store join the table at their own budget."""
+    from bench.store import Store
+    _ild(store, "a", 0, 0.75, {"lr_schedule": "budget"}, secs=120, curve=[])
+    short = Store(str(tmp_path / "short"))
+    _ild(short, "b", 0, 0.4, {"lr_schedule": "budget"}, secs=30, curve=[])
+    _ild(short, "c", 1, 0.6, {"lr_schedule": "budget"}, secs=30, curve=[])
+    df = tradeoff.budget_table(store, "hopper", minutes=(0.5, 1, 2), more_stores=(short,))
+    assert df.minutes.tolist() == [0.5, 2]
+    assert df["mean"].tolist() == pytest.approx([0.5, 0.75])
+    assert df["count"].tolist() == [2, 1]
+    with pytest.raises(ValueError, match="no finished runs on 'ant'.*short"):
+        tradeoff.budget_table(store, "ant", more_stores=(short,))
+
+
 def test_append_csv_keeps_earlier_rows_when_columns_are_added(tmp_path):
     """The benchmarks' CSVs: a later run's new column is empty in the earlier rows."""
     import pandas as pd
