@@ -334,12 +334,13 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         log(f"[{task_name}] resuming from {resume} (its best evaluation: step "
             f"{resumed['best_eval_step']:,d}, return {resumed['best_eval_return']:.2f})")
 
-    def write_meta(complete):
+    def write_meta(complete, stopped=None):
         with open(meta_path, "w") as f:
             json.dump({"task": task_name, "algorithm": f"brax {algorithm.upper()}", "seed": seed,
                        "preset": preset, algorithm: cfg, "train_env": train_env,
                        "best_eval_step": best["step"],
                        "best_eval_return": best["ret"], "complete": complete,
+                       "stopped": stopped,
                        "resumed_from": resumed,
                        "wall_clock_s": round(time.perf_counter() - t0, 1),
                        "machine": machine(), "versions": library_versions(),
@@ -414,17 +415,20 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
         else:
             ppo.train(environment=env, seed=seed, progress_fn=progress,
                       policy_params_fn=on_params, restore_params=restore, **cfg)
-        complete = True
+        complete, stopped = True, None
     except _TimeUp:
-        complete = False
+        complete, stopped = False, f"time limit {time_limit_s:.0f}s"
         log(f"[{task_name}] time limit {time_limit_s:.0f}s reached; keeping the best "
             f"evaluation's parameters")
+    except KeyboardInterrupt:  # Ctrl-C: a usable expert and an honest record, not a traceback
+        complete, stopped = False, "interrupted"
+        log(f"[{task_name}] interrupted; keeping the best evaluation's parameters")
     finally:
         if ckpt_dir is not None:
             shutil.rmtree(ckpt_dir, ignore_errors=True)
     if not np.isfinite(best["ret"]):
         raise RuntimeError(f"[{task_name}] no finite evaluation return; nothing saved")
-    write_meta(complete)  # the final status (parameters: the best evaluation's)
+    write_meta(complete, stopped)  # the final status (parameters: the best evaluation's)
     log(f"[{task_name}] expert saved to {param_path} (best eval return {best['ret']:.2f} at "
         f"step {best['step']:,d}; {time.perf_counter() - t0:.0f}s)")
     return param_path

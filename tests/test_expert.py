@@ -39,9 +39,10 @@ def test_recipes_and_overrides():
         expert.ppo_config("ant", "gpu", num_timesteps=0)
 
 
-def _fake_ppo(evals, calls):
+def _fake_ppo(evals, calls, interrupt_at=None):
     """brax PPO's callback order: initial evaluation, then its parameters; in the loop the
-    parameters of step s first, then the evaluation of those same parameters."""
+    parameters of step s first, then the evaluation of those same parameters. Ctrl-C
+    (KeyboardInterrupt) after the evaluation of step `interrupt_at`."""
     def train(environment, seed, progress_fn, policy_params_fn, restore_params=None, **cfg):
         calls.append((restore_params, environment))
         p = lambda v: (np.float32(v), {"w": np.full(2, v, np.float32)},
@@ -51,6 +52,8 @@ def _fake_ppo(evals, calls):
         for i, ret in enumerate(evals[1:], 1):
             policy_params_fn(i * 10, None, p(ret))
             progress_fn(i * 10, {"eval/episode_reward": ret})
+            if i * 10 == interrupt_at:
+                raise KeyboardInterrupt
         return None, None, None
     return train
 
@@ -66,8 +69,8 @@ def fake_train(monkeypatch, tmp_path):
     monkeypatch.setattr(expert.serialization, "msgpack_serialize", serialize)
     calls = []
 
-    def run(evals, **kw):
-        monkeypatch.setattr(ppo_train, "train", _fake_ppo(evals, calls))
+    def run(evals, interrupt_at=None, **kw):
+        monkeypatch.setattr(ppo_train, "train", _fake_ppo(evals, calls, interrupt_at))
         written.clear()
         path = expert.train_expert("ant", preset="gpu", out_dir=str(tmp_path), log=lambda *a: None,
                                    **kw)
@@ -92,6 +95,19 @@ def test_time_limit_stops_at_an_evaluation_and_keeps_the_best(fake_train):
     # The limit is checked after each evaluation past step 0: training stops after step 10.
     assert meta["complete"] is False and meta["best_eval_return"] == 5.0
     assert [e["step"] for e in meta["evals"]] == [0, 10]
+
+
+def test_an_interrupted_training_keeps_the_best_and_says_so(fake_train):
+    """Ctrl-C at the third evaluation leaves the best evaluation's parameters and a final
+    record of every evaluation seen, marked interrupted (a finished run: stopped None)."""
+    path, meta, policies, _ = fake_train([1.0, 6.0, 3.0, 9.0], interrupt_at=20)
+    assert meta["complete"] is False and meta["stopped"] == "interrupted"
+    assert meta["best_eval_return"] == 6.0 and [e["step"] for e in meta["evals"]] == [0, 10, 20]
+    assert [float(s["policy"]["w"][0]) for s in policies] == [1.0, 6.0]
+    _, meta, _, _ = fake_train([1.0, 2.0])
+    assert meta["complete"] is True and meta["stopped"] is None
+    _, meta, _, _ = fake_train([1.0, 5.0, 4.0], time_limit_s=0.0)
+    assert meta["stopped"] == "time limit 0s"
 
 
 def test_no_finite_evaluation_saves_nothing(fake_train):
