@@ -267,7 +267,8 @@ def cmd_expert(args):
     get_spec(args.task)  # unknown task -> error listing valid ones
     if args.expert_cmd == "train":
         from tasks.expert import default_algorithm, train_trajopt_expert
-        if (args.algorithm or default_algorithm(args.task)) == "trajopt":
+        algorithm = args.algorithm or default_algorithm(args.task)
+        if algorithm == "trajopt":
             ppo_only = [flag for flag, v in (("--steps", args.steps), ("--time-limit", args.time_limit),
                                              ("--resume", args.resume), ("--set", args.set),
                                              ("--env-set", args.env_set)) if v]
@@ -283,7 +284,7 @@ def cmd_expert(args):
                      out_dir=args.out, resume=args.resume,
                      overrides=_overrides(args.set),
                      env_overrides=_overrides(args.env_set, "--env-set"),
-                     algorithm=args.algorithm or default_algorithm(args.task))
+                     algorithm=algorithm)
     elif args.expert_cmd == "inspect":
         from tasks.expert import inspect_expert
         for k, v in inspect_expert(args.task, args.params, args.rollouts).items():

@@ -20,6 +20,8 @@ from __future__ import annotations
 import functools
 import json
 import os
+import shutil
+import tempfile
 import time
 
 import jax
@@ -353,12 +355,10 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
             state["algorithm"] = "sac"  # a plain string: msgpack stores it as such
         with open(param_path, "wb") as f:
             f.write(serialization.msgpack_serialize(state))
-        if len(params) < 3:
-            write_meta(complete=False)
-            return
-        with open(value_path, "wb") as f:
-            f.write(serialization.msgpack_serialize(
-                serialization.to_state_dict(jax.tree.map(np.asarray, params[2]))))
+        if len(params) > 2:  # PPO's value network, for --resume (SAC hands out none)
+            with open(value_path, "wb") as f:
+                f.write(serialization.msgpack_serialize(
+                    serialization.to_state_dict(jax.tree.map(np.asarray, params[2]))))
         write_meta(complete=False)
 
     # brax calls policy_params_fn(step, ...) and progress_fn(step, eval of those params) in
@@ -372,6 +372,19 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
                 best.update(ret=ret, step=pending["p_step"])
                 write(pending["params"])
             pending.clear()
+
+    ckpt_dir = tempfile.mkdtemp(prefix=f"ildbench-{task_name}-sac-") if algorithm == "sac" else None
+
+    def sac_checkpoint(step, ret):
+        """brax SAC saved this evaluation's (normalizer, policy) under ckpt_dir/<step>
+        (nothing at step 0, the untrained policy's evaluation)."""
+        path = os.path.join(ckpt_dir, f"{step:012d}")
+        if step and os.path.isdir(path):
+            if np.isfinite(ret) and ret > best["ret"]:
+                from brax.training import checkpoint
+                best.update(ret=ret, step=step)
+                write(tuple(checkpoint.load(path)))
+            shutil.rmtree(path)
 
     def progress(step, metrics):
         el = time.perf_counter() - t0
@@ -387,21 +400,6 @@ def train_expert(task_name: str, seed: int = 0, num_timesteps: int | None = None
             consider()
         if step and time_limit_s is not None and el > time_limit_s:
             raise _TimeUp
-
-    import shutil
-    import tempfile
-    ckpt_dir = tempfile.mkdtemp(prefix=f"ildbench-{task_name}-sac-") if algorithm == "sac" else None
-
-    def sac_checkpoint(step, ret):
-        """brax SAC saved this evaluation's (normalizer, policy) under ckpt_dir/<step>
-        (nothing at step 0, the untrained policy's evaluation)."""
-        path = os.path.join(ckpt_dir, f"{step:012d}")
-        if step and os.path.isdir(path):
-            if np.isfinite(ret) and ret > best["ret"]:
-                from brax.training import checkpoint
-                best.update(ret=ret, step=step)
-                write(tuple(jax.tree.map(np.asarray, tuple(checkpoint.load(path)))))
-            shutil.rmtree(path)
 
     def on_params(step, make_policy, params):
         pending.update(params=jax.tree.map(np.asarray, params), p_step=int(step))
@@ -500,33 +498,35 @@ def _sac_networks(task: Task):
         preprocess_observations_fn=running_statistics.normalize)
 
 
+def _restore_policy_params(task: Task, nets, param_path: str) -> dict:
+    """{'normalizer', 'policy'} of a brax expert file (PPO or SAC), restored into the shapes
+    of `nets`' policy network (a SAC file's `algorithm` tag is not a parameter)."""
+    from brax.training.acme import running_statistics
+    template = {"normalizer": running_statistics.init_state(
+        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
+        "policy": nets.policy_network.init(jax.random.PRNGKey(0))}
+    with open(param_path, "rb") as f:
+        raw = serialization.msgpack_restore(f.read())
+    raw.pop("algorithm", None)
+    return serialization.from_state_dict(template, raw)
+
+
 def load_sac_policy(task_name: str, param_path: str):
     """A SAC expert parameter file (normalizer + policy) as a bench.api.Policy."""
     from bench.api import Policy
-    from brax.training.acme import running_statistics
     from brax.training.agents.sac import networks as sac_networks
 
     task = make_task(task_name)
     nets = _sac_networks(task)
-    template = {"normalizer": running_statistics.init_state(
-        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
-        "policy": nets.policy_network.init(jax.random.PRNGKey(0)), "algorithm": "sac"}
-    with open(param_path, "rb") as f:
-        params = serialization.from_state_dict(template, serialization.msgpack_restore(f.read()))
+    params = _restore_policy_params(task, nets, param_path)
     inference = sac_networks.make_inference_fn(nets)
     return Policy(act=_PPOAct(inference), params=(params["normalizer"], params["policy"]))
 
 
 def _restore_ppo_params(task: Task, param_path: str):
-    """(networks, {'normalizer', 'policy'}) from an expert parameter file."""
-    from brax.training.acme import running_statistics
+    """(networks, {'normalizer', 'policy'}) from a PPO expert parameter file."""
     nets = _ppo_networks(task)
-    template = {"normalizer": running_statistics.init_state(
-        jax.ShapeDtypeStruct((task.obs_size,), jnp.float32)),
-        "policy": nets.policy_network.init(jax.random.PRNGKey(0))}
-    with open(param_path, "rb") as f:
-        return nets, serialization.from_state_dict(template,
-                                                   serialization.msgpack_restore(f.read()))
+    return nets, _restore_policy_params(task, nets, param_path)
 
 
 def load_ppo_policy(task_name: str, param_path: str):
@@ -651,9 +651,10 @@ def make_demo(task_name: str, rollouts: int = 64, keep: int = 16, seed: int = 0,
     else:
         record = json.load(open(meta_path))
         source = {"trajopt": "open-loop trajectory optimization through the task's physics"}
-        expert_meta = {"source": source.get(record.get("algorithm"), "brax PPO"),
+        expert_meta = {"source": source.get(record.get("algorithm"),
+                                            record.get("algorithm", "brax PPO")),
                        **{k: v for k, v in record.items()
-                          if k in ("seed", "ppo", "trajopt", "train_env", "wall_clock_s")}}
+                          if k in ("seed", "ppo", "sac", "trajopt", "train_env", "wall_clock_s")}}
     demo = Demo(
         obs=r["obs"][order].astype(np.float32), states=r["states"][order].astype(np.float32),
         actions=r["actions"][order].astype(np.float32),

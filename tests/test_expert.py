@@ -235,3 +235,14 @@ def test_jax_compat_shims_match_jax():
             assert ours[k].shape == theirs[k].shape
             np.testing.assert_array_equal(ours[k], theirs[k])
     assert ours["a"].shape == (len(jax.local_devices()), 2, 3)
+
+
+def test_committed_demos_name_their_experts_trainer():
+    """A demo's meta records how its expert was trained (the expert json's algorithm)."""
+    from tasks.registry import DATA_DIR
+    want = {"walker2d": ("brax SAC", "sac"), "hopper": ("brax PPO", "ppo"),
+            "acrobot": ("open-loop trajectory optimization through the task's physics",
+                        "trajopt")}
+    for task, (source, config_key) in want.items():
+        meta = json.loads(str(np.load(os.path.join(DATA_DIR, f"{task}.npz"))["meta"]))
+        assert meta["expert"]["source"] == source and config_key in meta["expert"], task
