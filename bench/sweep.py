@@ -20,10 +20,13 @@ configuration compiled from scratch (session 8's grid: ILD on inverted_pendulum 
 its 180 s compiling and made 1 update; SHAC's 194 s left it none), later seeds loaded the
 cache (~20 s). So before the first cell of each group of cells that share compiled training
 graphs (same method, version, task, config and demo count) the sweep runs that cell once
-more in a spawned process with a one-env-step budget, one evaluation episode and no transfer,
-into a throwaway store: it fills the persistent cache, and every timed cell then pays the
-same cache-load cost. Skipped where it cannot matter (env-step budgets, compile not
-charged) and with `warm=False` (`--no-warm`).
+more in a spawned process with a one-env-step budget, one evaluation and no transfer, into a
+throwaway store: it fills the persistent cache, and every timed cell then pays the same
+cache-load cost. This holds only if a method's training graph compiles once: SHAC's first
+state carried weak types, its second epoch compiled again, uncached, and its first seed on
+humanoid and walker2d spent 206 and 181 s of a 180-s budget compiling (fixed in session 13,
+per-epoch numbers unchanged; tests/test_shac.py checks that it compiles once). Skipped where
+it cannot matter (env-step budgets, compile not charged) and with `warm=False` (`--no-warm`).
 
 Progress (rich): cells done / skipped / left, the last cell's score, and an ETA from the mean
 wall time of the cells run in this sitting.
@@ -176,11 +179,13 @@ def compile_group(p: Prepared) -> str:
 
 
 def warmup_request(r: RunRequest) -> RunRequest:
-    """The cell cut to one env step of training (one update or chunk), one evaluation
-    episode, no transfer: enough to compile its training graphs."""
+    """The cell cut to one env step of training (one update or chunk), one evaluation of
+    the cell's own episode count (the evaluator's graph is compiled per batch size: with one
+    episode the timed cell's evaluation compiled afresh, 88-97 s on humanoid, walker2d), no
+    transfer: enough to compile its training and evaluation graphs."""
     return dataclasses.replace(
         r, budget=Budget(env_steps=1, evals=1, charge_compile=r.budget.charge_compile),
-        eval=EvalConfig(num_episodes=1, deterministic=r.eval.deterministic))
+        eval=EvalConfig(num_episodes=r.eval.num_episodes, deterministic=r.eval.deterministic))
 
 
 def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> None:

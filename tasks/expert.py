@@ -139,6 +139,8 @@ RECIPES = {"ppo": PRESETS, "sac": {"cpu": SAC_CONFIGS}}
 TRAJOPT_CONFIGS: dict[str, dict] = {
     "acrobot": dict(starts=32, steps=300, learning_rate=0.1, amplitude=3.0, min_freq=2.0,
                     max_freq=12.0, select_episodes=16),
+    "swimmer": dict(starts=16, steps=200, learning_rate=0.1, amplitude=3.0, min_freq=1.0,
+                    max_freq=8.0, select_episodes=16),
 }
 
 

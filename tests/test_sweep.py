@@ -109,7 +109,8 @@ def test_isolated_cells_survive_a_hard_crash_and_match_in_process(tmp_path, monk
 def test_compile_warmup_once_per_group_before_its_first_pending_cell(tmp_path, monkeypatch):
     """One warm-up per group of cells sharing compiled graphs (seeds share; a config change
     does not), only for pending cells under a wall-clock budget that charges compile; the
-    warm-up cell is the same cell cut to one env step, one episode, no transfer."""
+    warm-up cell is the same cell cut to one env step and one evaluation (of the cell's own
+    episode count: the evaluator compiles per batch size), no transfer."""
     store = Store(str(tmp_path / "runs"))
     steps = RunRequest(method="bc", task="pointmass", seed=0, overrides={"updates": 200},
                        budget=Budget(env_steps=10_000), eval=EvalConfig(num_episodes=8))
@@ -120,9 +121,9 @@ def test_compile_warmup_once_per_group_before_its_first_pending_cell(tmp_path, m
     prepared = [prepare(r) for r in (_bc(0), _bc(1), _bc(2), steps, other, uncharged)]
     assert len({sweep.compile_group(p) for p in prepared[:3]}) == 1
     assert sweep.compile_group(prepared[0]) != sweep.compile_group(prepared[4])
-    w = sweep.warmup_request(dataclasses.replace(other, eval=EvalConfig(transfer=True)))
+    w = sweep.warmup_request(dataclasses.replace(other, eval=EvalConfig(24, transfer=True)))
     assert (w.budget.env_steps, w.budget.seconds, w.eval.num_episodes, w.eval.transfer) == \
-        (1, None, 1, False) and w.overrides == other.overrides and w.seed == other.seed
+        (1, None, 24, False) and w.overrides == other.overrides and w.seed == other.seed
     execute(prepared[0], store, log=lambda s: None)               # seed 0 finished earlier
     calls = []
     monkeypatch.setattr(sweep, "warm_up", lambda p, cache, log: calls.append(p.request))

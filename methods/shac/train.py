@@ -46,7 +46,9 @@ class RMS:
 
     @staticmethod
     def init(d):
-        return RMS(jnp.zeros(d), jnp.ones(d), jnp.asarray(1e-4))
+        # float32 explicitly: a weakly typed count (jnp.asarray(1e-4)) turns strong after the
+        # first update, so `epoch` would compile a second time.
+        return RMS(jnp.zeros(d), jnp.ones(d), jnp.asarray(1e-4, jnp.float32))
 
     def update(self, x):
         x = x.reshape(-1, x.shape[-1])
@@ -119,7 +121,7 @@ class SHAC:
     def init(self, key) -> State:
         k_a, k_c, k_env, key = jax.random.split(key, 4)
         actor = {"net": self.actor_net.init(k_a, jnp.zeros(self.obs_size)),
-                 "logstd": jnp.full(self.action_size, self.cfg.logstd_init)}
+                 "logstd": jnp.full(self.action_size, self.cfg.logstd_init, jnp.float32)}
         critic = self.critic_net.init(k_c, jnp.zeros(self.obs_size))
         env_state = jax.vmap(self.env.reset)(jax.random.split(k_env, self.cfg.num_envs))
         return State(actor, critic, critic, self.actor_tx.init(actor),
