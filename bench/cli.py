@@ -428,7 +428,8 @@ def build_parser():
     _eadd = esub.add_parser
     esub.add_parser = lambda *a, **k: _eadd(*a, parents=[common], **k)
     e = esub.add_parser("train", help="train a task's expert (brax PPO; brax SAC for walker2d; "
-                                      "open-loop trajectory optimization for acrobot)")
+                                      "open-loop trajectory optimization for acrobot and "
+                                      "swimmer)")
     e.add_argument("--task", required=True)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--algorithm", default=None, choices=["ppo", "sac", "trajopt"],

@@ -27,8 +27,8 @@ def test_recipes_and_overrides():
         expert.ppo_config("walker2d", "gpu", algorithm="sac")
     with pytest.raises(ValueError, match="unknown expert algorithm 'td3'.*ppo, sac"):
         expert.ppo_config("walker2d", algorithm="td3")
-    assert [expert.default_algorithm(t) for t in ("acrobot", "walker2d", "hopper")] == [
-        "trajopt", "sac", "ppo"]
+    assert [expert.default_algorithm(t) for t in ("acrobot", "swimmer", "walker2d", "hopper")] \
+        == ["trajopt", "trajopt", "sac", "ppo"]
     sac = expert.ppo_config("walker2d", algorithm="sac", overrides={"grad_updates_per_step": "4"})
     assert sac["grad_updates_per_step"] == 4 and sac["episode_length"] == 1000
     with pytest.raises(ValueError, match="no PPO expert recipe for task 'pointmass'"):
@@ -242,6 +242,8 @@ def test_committed_demos_name_their_experts_trainer():
     from tasks.registry import DATA_DIR
     want = {"walker2d": ("brax SAC", "sac"), "hopper": ("brax PPO", "ppo"),
             "acrobot": ("open-loop trajectory optimization through the task's physics",
+                        "trajopt"),
+            "swimmer": ("open-loop trajectory optimization through the task's physics",
                         "trajopt")}
     for task, (source, config_key) in want.items():
         meta = json.loads(str(np.load(os.path.join(DATA_DIR, f"{task}.npz"))["meta"]))
