@@ -125,6 +125,10 @@ TASK_OVERRIDES: dict[str, dict] = {
     # at 128 the cosine is 1.000 (`python -m methods.ild.probe --task acrobot --num-envs 32
     # --truncation W`, session 11): a swing-up's early torques pay off many steps later.
     "acrobot": {"truncation": 128},
+    # swimmer (session 13) has no override: truncation-10's cosine with the true gradient is
+    # 0.505 (0.802 at 128), but from the BC warm start every Adam first step at lr >= 1e-4
+    # raises the loss (1.8-4x) along either gradient, and central differences disagree with
+    # the analytic derivative at every eps: a rough loss, not a truncation effect (README).
     # The original's cloth setting: 10 parallel rollouts (one update of 10 x 80 steps costs
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.
