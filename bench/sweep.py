@@ -42,7 +42,6 @@ import time
 from typing import Callable, Sequence
 
 from bench.budget import Budget
-from bench.evaluator import EvalConfig
 from bench.runner import Prepared, RunRequest, execute, prepare
 from bench.store import Store
 
@@ -179,13 +178,14 @@ def compile_group(p: Prepared) -> str:
 
 
 def warmup_request(r: RunRequest) -> RunRequest:
-    """The cell cut to one env step of training (one update or chunk), one evaluation of
-    the cell's own episode count (the evaluator's graph is compiled per batch size: with one
-    episode the timed cell's evaluation compiled afresh, 88-97 s on humanoid, walker2d), no
-    transfer: enough to compile its training and evaluation graphs."""
+    """The cell cut to one env step of training (one update or chunk) and one evaluation
+    with the cell's own evaluation settings (the evaluator's graph is compiled per batch
+    size), without transfer or robustness: enough to compile its training and evaluation
+    graphs. (The perturbed envs of a transfer evaluation still compile in the first timed
+    cell; evaluation compile is not charged to the training budget.)"""
     return dataclasses.replace(
         r, budget=Budget(env_steps=1, evals=1, charge_compile=r.budget.charge_compile),
-        eval=EvalConfig(num_episodes=r.eval.num_episodes, deterministic=r.eval.deterministic))
+        eval=dataclasses.replace(r.eval, transfer=False, robustness=False))
 
 
 def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> None:
