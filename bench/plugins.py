@@ -31,9 +31,15 @@ class ConfigError(ValueError):
     pass
 
 
+class MethodUnavailableError(UnknownMethodError):
+    """An in-repo method whose third-party dependency is not installed."""
+
+
 _REGISTRY: dict[str, MethodSpec] = {}
 _SOURCES: dict[str, str] = {}
+_UNAVAILABLE: dict[str, str] = {}  # in-repo method folder -> the missing dependency's error
 _loaded = False
+_OWN_PACKAGES = ("bench", "methods", "tasks")
 
 
 def register(spec: MethodSpec, source: str = "in-repo") -> MethodSpec:
@@ -59,7 +65,16 @@ def _load_all() -> None:
     for info in pkgutil.iter_modules(methods.__path__):
         if not info.ispkg or info.name.startswith("_") or info.name == "common":
             continue
-        module = importlib.import_module(f"methods.{info.name}")
+        try:
+            module = importlib.import_module(f"methods.{info.name}")
+        except ModuleNotFoundError as e:
+            # A missing third-party package (e.g. gymnasium for DAC on a machine that only
+            # has the JAX stack) leaves the other methods usable; asking for this one then
+            # names what is missing. A module of our own missing is a bug: re-raise.
+            if (e.name or "").split(".")[0] in _OWN_PACKAGES:
+                raise
+            _UNAVAILABLE[info.name] = f"{e}"
+            continue
         # A folder is one method (METHOD) or a family sharing code (METHODS).
         for spec in getattr(module, "METHODS", None) or [getattr(module, "METHOD", None)]:
             if spec is not None:
@@ -77,9 +92,16 @@ def all_methods() -> dict[str, MethodSpec]:
 
 def get_method(name: str) -> MethodSpec:
     methods_ = all_methods()
+    if name not in methods_ and name in _UNAVAILABLE:
+        raise MethodUnavailableError(
+            f"method {name!r} cannot be loaded here: {_UNAVAILABLE[name]}; install the "
+            f"project's dependencies (pip install -e .) or pick another method; loadable "
+            f"methods: {', '.join(sorted(methods_))}")
     if name not in methods_:
+        missing = "".join(f"; methods/{k} not loadable here: {v}"
+                          for k, v in sorted(_UNAVAILABLE.items()))
         raise UnknownMethodError(
-            f"unknown method {name!r}; valid methods: {', '.join(sorted(methods_))}")
+            f"unknown method {name!r}; valid methods: {', '.join(sorted(methods_))}{missing}")
     return methods_[name]
 
 

@@ -56,6 +56,8 @@ def _build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
         raise ValueError(f"task {spec.name!r} declares no test_noise dynamics "
                          "(TaskSpec.transfer)")
     if kind == "brax":
+        from tasks.jax_compat import apply as jax_compat
+        jax_compat()  # brax 0.14.2 on a newer JAX (the accelerator image); no-op on the pin
         return brax_envs.get_environment(name, backend=spec.backend, **kwargs)
     if kind == "ildbench" and name == "pointmass":
         from tasks.pointmass import PointMass

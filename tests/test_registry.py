@@ -106,3 +106,41 @@ def test_invalid_config_is_a_clear_error(overrides, match):
 def test_unknown_preset():
     with pytest.raises(ConfigError, match="no preset 'gpu'"):
         build_config(get_method("bc"), "pointmass", "gpu")
+
+
+def test_method_with_a_missing_dependency_leaves_the_others_usable(monkeypatch):
+    """A machine without gymnasium (the accelerator image) still runs the JAX methods, and
+    asking for DAC names the missing package instead of failing every command."""
+    real_import = plugins.importlib.import_module
+
+    def import_module(name, *a, **k):
+        if name == "methods.dac":
+            raise ModuleNotFoundError("No module named 'gymnasium'", name="gymnasium")
+        return real_import(name, *a, **k)
+
+    _fresh_registry_with_entry_point(monkeypatch, "extmethod")
+    monkeypatch.setattr(plugins, "_UNAVAILABLE", {})
+    monkeypatch.setattr(plugins.importlib, "import_module", import_module)
+    names = plugins.all_methods()
+    assert "dac" not in names and {"ild", "bc", "extmethod"} <= set(names)
+    with pytest.raises(plugins.MethodUnavailableError, match="dac.*gymnasium.*pip install"):
+        plugins.get_method("dac")
+    with pytest.raises(plugins.UnknownMethodError, match="methods/dac not loadable.*gymnasium"):
+        plugins.get_method("nosuch")
+    assert plugins.get_method("ild").name == "ild"
+
+
+def test_a_missing_module_of_our_own_is_not_hidden(monkeypatch):
+    real_import = plugins.importlib.import_module
+
+    def import_module(name, *a, **k):
+        if name == "methods.dac":
+            raise ModuleNotFoundError("No module named 'methods.common.gone'",
+                                      name="methods.common.gone")
+        return real_import(name, *a, **k)
+
+    _fresh_registry_with_entry_point(monkeypatch, "extmethod")
+    monkeypatch.setattr(plugins, "_UNAVAILABLE", {})
+    monkeypatch.setattr(plugins.importlib, "import_module", import_module)
+    with pytest.raises(ModuleNotFoundError, match="methods.common.gone"):
+        plugins.all_methods()
