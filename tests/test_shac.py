@@ -10,6 +10,7 @@ import pytest
 from bench.budget import Budget
 from bench.evaluator import EvalConfig
 from bench.runner import RunRequest, execute, prepare
+from brax.envs.base import Wrapper
 from methods.shac.config import SHACConfig
 from tasks import make_task
 
@@ -103,6 +104,36 @@ def test_epoch_compiles_once():
     s1, _ = agent.epoch(s0)
     assert _avals(s1) == _avals(s0)
     compiled = agent.epoch._cache_size()  # shared by every SHAC built in this process
+    agent.epoch(s1)
+    assert agent.epoch._cache_size() == compiled
+
+
+class _WeakMetric(Wrapper):
+    """Writes a Python float to a metric on every step, as brax's hopper does with
+    `reward_healthy`: the stepped state comes back weakly typed where reset's was not."""
+
+    def reset(self, rng):
+        s = self.env.reset(rng)
+        return s.replace(metrics={**s.metrics, "healthy": jnp.zeros(())})
+
+    def step(self, state, action):
+        s = self.env.step(state, action)
+        return s.replace(metrics={**s.metrics, "healthy": 1.0})
+
+
+def test_epoch_compiles_once_when_the_env_state_comes_back_weakly_typed():
+    """SHAC on hopper compiled a second `epoch` (150 s of a 180-s budget): its env's step
+    writes a weakly typed metric. `strong` keeps the carried state at one signature."""
+    task = make_task("pointmass")
+    env = _WeakMetric(task.env)
+    assert jax.vmap(env.step)(jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 2)),
+                              jnp.zeros((2, task.action_size))).metrics["healthy"].weak_type
+    cfg = SHACConfig(num_envs=8, actor_hidden=(16,), critic_hidden=(16,))
+    agent = shac.SHAC(env, task.obs_size, task.action_size, task.episode_length, cfg)
+    s0 = agent.init(jax.random.PRNGKey(0))
+    s1, _ = agent.epoch(s0)
+    assert _avals(s1) == _avals(s0)
+    compiled = agent.epoch._cache_size()
     agent.epoch(s1)
     assert agent.epoch._cache_size() == compiled
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tasks import TASKS, make_task
-from tasks.core import brax_matched_state
+from tasks.core import Canonical, brax_matched_state, strong
 
 
 def test_pointmass_dynamics_by_hand():
@@ -126,3 +126,40 @@ def test_every_task_steps_and_differentiates(name):
     v, g = _grad_through(name, 16)
     assert np.isfinite(v) and np.isfinite(np.asarray(g)).all()
     assert np.abs(np.asarray(g)).sum() > 0
+
+
+def test_strong_removes_weak_types_and_keeps_values():
+    tree = {"a": jnp.asarray(1.5), "b": jnp.arange(3, dtype=jnp.int32), "c": 2.0}
+    out = strong(tree)
+    assert tree["a"].weak_type and not out["a"].weak_type and not out["c"].weak_type
+    assert [x.dtype for x in jax.tree.leaves(out)] == [jnp.float32, jnp.int32, jnp.float32]
+    np.testing.assert_array_equal(out["b"], tree["b"])
+    assert float(out["a"]) == 1.5 and float(out["c"]) == 2.0
+
+
+def test_canonical_states_keep_one_type_from_reset_on():
+    """brax's hopper writes a Python float to metrics['reward_healthy'] on every step, so
+    its stepped state is weakly typed where reset's is not; a jitted step carrying it
+    compiles twice. Every task's env is Canonical: reset and step agree."""
+    from brax.envs.base import Wrapper
+
+    from tasks.pointmass import PointMass
+
+    class WeakMetric(Wrapper):
+        def reset(self, rng):
+            s = self.env.reset(rng)
+            return s.replace(metrics={**s.metrics, "healthy": jnp.zeros(())})
+
+        def step(self, state, action):
+            s = self.env.step(state, action)
+            return s.replace(metrics={**s.metrics, "healthy": 1.0})
+
+    def avals(tree):
+        return [(x.shape, x.dtype, x.weak_type) for x in jax.tree.leaves(tree)]
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    for env, weak in ((WeakMetric(PointMass()), True), (Canonical(WeakMetric(PointMass())), False)):
+        s0 = jax.vmap(env.reset)(keys)
+        s1 = jax.vmap(env.step)(s0, jnp.zeros((2, 1)))
+        assert (avals(s1) != avals(s0)) == weak
+        assert float(s1.metrics["healthy"][0]) == 1.0

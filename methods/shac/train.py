@@ -20,7 +20,7 @@ from flax import linen
 
 from bench.api import Policy, TrainResult
 from methods.shac.config import SHACConfig
-from tasks.core import reset_done
+from tasks.core import reset_done, strong
 
 
 class MLP(linen.Module):
@@ -124,9 +124,10 @@ class SHAC:
                  "logstd": jnp.full(self.action_size, self.cfg.logstd_init, jnp.float32)}
         critic = self.critic_net.init(k_c, jnp.zeros(self.obs_size))
         env_state = jax.vmap(self.env.reset)(jax.random.split(k_env, self.cfg.num_envs))
-        return State(actor, critic, critic, self.actor_tx.init(actor),
-                     self.critic_tx.init(critic), RMS.init(self.obs_size), env_state,
-                     jnp.zeros(self.cfg.num_envs, jnp.int32), key, jnp.zeros((), jnp.int32))
+        return strong(State(actor, critic, critic, self.actor_tx.init(actor),
+                            self.critic_tx.init(critic), RMS.init(self.obs_size), env_state,
+                            jnp.zeros(self.cfg.num_envs, jnp.int32), key,
+                            jnp.zeros((), jnp.int32)))
 
     def norm(self, rms, obs):
         return rms(obs) if self.cfg.obs_norm else obs
@@ -214,6 +215,7 @@ class SHAC:
         s = s.replace(actor=actor, critic=critic, target=target, actor_opt=actor_opt,
                       critic_opt=critic_opt, rms=rms, env_state=es, t=t, key=key,
                       epoch=s.epoch + 1)
+        s = strong(s)  # the types it came in with: the next epoch reuses this executable
         metrics = {"train/actor_loss": aloss, "train/critic_loss": closs[-1],
                    "grad/norm_raw": gnorm, "grad/nonfinite": nonfinite,
                    "train/episodes_ended": jnp.sum(dones)}
