@@ -18,3 +18,30 @@ def _jax_cache(tmp_path_factory):
 def store(tmp_path):
     from bench.store import Store
     return Store(str(tmp_path / "runs"))
+
+
+@pytest.fixture
+def weak_metric():
+    """A brax wrapper that writes a Python float to a metric on every step, as brax's hopper
+    does with `reward_healthy`: the stepped state comes back weakly typed where reset's was
+    not (a jitted step carrying it compiles twice)."""
+    import jax.numpy as jnp
+    from brax.envs.base import Wrapper
+
+    class WeakMetric(Wrapper):
+        def reset(self, rng):
+            s = self.env.reset(rng)
+            return s.replace(metrics={**s.metrics, "healthy": jnp.zeros(())})
+
+        def step(self, state, action):
+            s = self.env.step(state, action)
+            return s.replace(metrics={**s.metrics, "healthy": 1.0})
+
+    return WeakMetric
+
+
+@pytest.fixture
+def avals():
+    """A pytree's type signature as jit sees it: (shape, dtype, weak_type) per leaf."""
+    import jax
+    return lambda tree: [(x.shape, x.dtype, x.weak_type) for x in jax.tree.leaves(tree)]

@@ -69,7 +69,11 @@ def _fresh_registry_with_entry_point(monkeypatch, name):
     monkeypatch.setattr(plugins, "_REGISTRY", {})
     monkeypatch.setattr(plugins, "_SOURCES", {})
     monkeypatch.setattr(plugins, "_loaded", False)
-    monkeypatch.setattr(plugins.metadata, "entry_points", lambda group: [_EntryPoint(name)])
+    real = plugins.metadata.entry_points
+    # Only ildbench's group: other libraries read entry points too (torch's import does).
+    monkeypatch.setattr(plugins.metadata, "entry_points",
+                        lambda group: [_EntryPoint(name)] if group == plugins.ENTRY_POINT_GROUP
+                        else real(group=group))
 
 
 def test_entry_point_methods_are_discovered(monkeypatch):
@@ -108,19 +112,25 @@ def test_unknown_preset():
         build_config(get_method("bc"), "pointmass", "gpu")
 
 
-def test_method_with_a_missing_dependency_leaves_the_others_usable(monkeypatch):
-    """A machine without gymnasium (the accelerator image) still runs the JAX methods, and
-    asking for DAC names the missing package instead of failing every command."""
+def _fresh_registry_where_dac_misses(monkeypatch, module):
+    """A fresh registry (plus one entry-point method) in which importing methods.dac fails
+    because `module` is not installed."""
     real_import = plugins.importlib.import_module
 
     def import_module(name, *a, **k):
         if name == "methods.dac":
-            raise ModuleNotFoundError("No module named 'gymnasium'", name="gymnasium")
+            raise ModuleNotFoundError(f"No module named {module!r}", name=module)
         return real_import(name, *a, **k)
 
     _fresh_registry_with_entry_point(monkeypatch, "extmethod")
     monkeypatch.setattr(plugins, "_UNAVAILABLE", {})
     monkeypatch.setattr(plugins.importlib, "import_module", import_module)
+
+
+def test_method_with_a_missing_dependency_leaves_the_others_usable(monkeypatch):
+    """A machine without gymnasium (the accelerator image) still runs the JAX methods, and
+    asking for DAC names the missing package instead of failing every command."""
+    _fresh_registry_where_dac_misses(monkeypatch, "gymnasium")
     names = plugins.all_methods()
     assert "dac" not in names and {"ild", "bc", "extmethod"} <= set(names)
     with pytest.raises(plugins.MethodUnavailableError, match="dac.*gymnasium.*pip install"):
@@ -131,16 +141,6 @@ def test_method_with_a_missing_dependency_leaves_the_others_usable(monkeypatch):
 
 
 def test_a_missing_module_of_our_own_is_not_hidden(monkeypatch):
-    real_import = plugins.importlib.import_module
-
-    def import_module(name, *a, **k):
-        if name == "methods.dac":
-            raise ModuleNotFoundError("No module named 'methods.common.gone'",
-                                      name="methods.common.gone")
-        return real_import(name, *a, **k)
-
-    _fresh_registry_with_entry_point(monkeypatch, "extmethod")
-    monkeypatch.setattr(plugins, "_UNAVAILABLE", {})
-    monkeypatch.setattr(plugins.importlib, "import_module", import_module)
+    _fresh_registry_where_dac_misses(monkeypatch, "methods.common.gone")
     with pytest.raises(ModuleNotFoundError, match="methods.common.gone"):
         plugins.all_methods()

@@ -10,7 +10,6 @@ import pytest
 from bench.budget import Budget
 from bench.evaluator import EvalConfig
 from bench.runner import RunRequest, execute, prepare
-from brax.envs.base import Wrapper
 from methods.shac.config import SHACConfig
 from tasks import make_task
 
@@ -90,11 +89,7 @@ def test_epoch_is_deterministic_and_reports_finite_metrics():
     assert float(a[1]["grad/nonfinite"]) == 0
 
 
-def _avals(tree):
-    return [(x.shape, x.dtype, x.weak_type) for x in jax.tree.leaves(tree)]
-
-
-def test_epoch_compiles_once():
+def test_epoch_compiles_once(avals):
     """The initial state has the types of every later state: weak types in it (a Python
     float through jnp.full / jnp.asarray) made `epoch` compile twice, and a sweep's one-epoch
     compile warm-up cached only the first (walker2d: 184 s of a 60-s budget compiling)."""
@@ -102,37 +97,24 @@ def test_epoch_compiles_once():
     agent = _agent(task)
     s0 = agent.init(jax.random.PRNGKey(0))
     s1, _ = agent.epoch(s0)
-    assert _avals(s1) == _avals(s0)
+    assert avals(s1) == avals(s0)
     compiled = agent.epoch._cache_size()  # shared by every SHAC built in this process
     agent.epoch(s1)
     assert agent.epoch._cache_size() == compiled
 
 
-class _WeakMetric(Wrapper):
-    """Writes a Python float to a metric on every step, as brax's hopper does with
-    `reward_healthy`: the stepped state comes back weakly typed where reset's was not."""
-
-    def reset(self, rng):
-        s = self.env.reset(rng)
-        return s.replace(metrics={**s.metrics, "healthy": jnp.zeros(())})
-
-    def step(self, state, action):
-        s = self.env.step(state, action)
-        return s.replace(metrics={**s.metrics, "healthy": 1.0})
-
-
-def test_epoch_compiles_once_when_the_env_state_comes_back_weakly_typed():
+def test_epoch_compiles_once_when_the_env_state_comes_back_weakly_typed(weak_metric, avals):
     """SHAC on hopper compiled a second `epoch` (150 s of a 180-s budget): its env's step
     writes a weakly typed metric. `strong` keeps the carried state at one signature."""
     task = make_task("pointmass")
-    env = _WeakMetric(task.env)
+    env = weak_metric(task.env)
     assert jax.vmap(env.step)(jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 2)),
                               jnp.zeros((2, task.action_size))).metrics["healthy"].weak_type
     cfg = SHACConfig(num_envs=8, actor_hidden=(16,), critic_hidden=(16,))
     agent = shac.SHAC(env, task.obs_size, task.action_size, task.episode_length, cfg)
     s0 = agent.init(jax.random.PRNGKey(0))
     s1, _ = agent.epoch(s0)
-    assert _avals(s1) == _avals(s0)
+    assert avals(s1) == avals(s0)
     compiled = agent.epoch._cache_size()
     agent.epoch(s1)
     assert agent.epoch._cache_size() == compiled

@@ -137,28 +137,15 @@ def test_strong_removes_weak_types_and_keeps_values():
     assert float(out["a"]) == 1.5 and float(out["c"]) == 2.0
 
 
-def test_canonical_states_keep_one_type_from_reset_on():
+def test_canonical_states_keep_one_type_from_reset_on(weak_metric, avals):
     """brax's hopper writes a Python float to metrics['reward_healthy'] on every step, so
     its stepped state is weakly typed where reset's is not; a jitted step carrying it
     compiles twice. Every task's env is Canonical: reset and step agree."""
-    from brax.envs.base import Wrapper
-
     from tasks.pointmass import PointMass
 
-    class WeakMetric(Wrapper):
-        def reset(self, rng):
-            s = self.env.reset(rng)
-            return s.replace(metrics={**s.metrics, "healthy": jnp.zeros(())})
-
-        def step(self, state, action):
-            s = self.env.step(state, action)
-            return s.replace(metrics={**s.metrics, "healthy": 1.0})
-
-    def avals(tree):
-        return [(x.shape, x.dtype, x.weak_type) for x in jax.tree.leaves(tree)]
-
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    for env, weak in ((WeakMetric(PointMass()), True), (Canonical(WeakMetric(PointMass())), False)):
+    for env, weak in ((weak_metric(PointMass()), True),
+                      (Canonical(weak_metric(PointMass())), False)):
         s0 = jax.vmap(env.reset)(keys)
         s1 = jax.vmap(env.step)(s0, jnp.zeros((2, 1)))
         assert (avals(s1) != avals(s0)) == weak
