@@ -17,6 +17,9 @@ import jax
 _COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
                    "/jax/core/compile/jaxpr_to_mlir_module_duration",
                    "/jax/core/compile/backend_compile_duration")
+# One lowering per compiled computation (a jit cache miss, or an eager op on a new shape),
+# fired whether or not the persistent cache then supplies the executable.
+_LOWERING_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
 
 
 class BudgetError(ValueError):
@@ -62,16 +65,21 @@ def parse_seconds(text: str) -> float:
 
 
 class _CompileMeter:
-    """Sums JAX compile-event durations into whichever bucket is active."""
+    """Sums JAX compile-event durations, and counts compilations (lowerings), into whichever
+    clock and bucket are active."""
 
     def __init__(self):
-        self.active: dict | None = None
+        self.active: Clock | None = None
         self.bucket = "train"
         jax.monitoring.register_event_duration_secs_listener(self._on_event)
 
     def _on_event(self, event: str, duration: float, **_):
-        if self.active is not None and event in _COMPILE_EVENTS:
-            self.active[self.bucket] = self.active.get(self.bucket, 0.0) + duration
+        clock = self.active
+        if clock is None or event not in _COMPILE_EVENTS:
+            return
+        clock.compile_s[self.bucket] = clock.compile_s.get(self.bucket, 0.0) + duration
+        if event == _LOWERING_EVENT:
+            clock.compiles[self.bucket] = clock.compiles.get(self.bucket, 0) + 1
 
 
 _METER = _CompileMeter()
@@ -83,9 +91,11 @@ class Clock:
     def __init__(self, charge_compile: bool = True):
         self.charge_compile = charge_compile
         self.compile_s = {"train": 0.0, "eval": 0.0}
+        self.compiles = {"train": 0, "eval": 0}
+        """Computations compiled (JAX lowerings) while training / while the harness worked."""
         self._start = time.perf_counter()
         self._paused = 0.0
-        _METER.active = self.compile_s
+        _METER.active = self
         _METER.bucket = "train"
 
     def elapsed(self) -> float:
@@ -103,5 +113,5 @@ class Clock:
             self._paused += time.perf_counter() - t0
 
     def close(self):
-        if _METER.active is self.compile_s:
+        if _METER.active is self:
             _METER.active = None

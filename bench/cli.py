@@ -197,6 +197,18 @@ def cmd_check(args):
     return 0 if passed else 1
 
 
+def cmd_conform(args):
+    from bench.conformance import conform, render
+    from bench.runner import enable_compilation_cache
+    enable_compilation_cache(args.jax_cache)
+    found = conform(args.method, task=args.task, env_steps=args.steps, evals=args.evals,
+                    overrides=_overrides(args.set), preset=args.preset, repeats=args.repeats,
+                    seed=args.seed, log=(lambda s: print(s, flush=True)) if args.verbose
+                    else (lambda s: None))
+    print(render(args.method, found))
+    return 1 if any(f.passed is False for f in found) else 0
+
+
 def cmd_render(args):
     from bench.render import render_pair
     from bench.store import Store
@@ -390,6 +402,20 @@ def build_parser():
     p.add_argument("--verbose", action="store_true", help="print the runs' progress")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
     p.set_defaults(fn=cmd_check)
+    p = sub.add_parser("conform", help="check a method plugin: runs, budget, compiles its "
+                       "update once, deterministic (bench/conformance.py)")
+    p.add_argument("--method", required=True)
+    p.add_argument("--task", default="pointmass")
+    p.add_argument("--steps", type=int, default=20_000, help="env-step budget per run")
+    p.add_argument("--evals", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=2, help="runs with one seed (determinism)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", default=None)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config field (repeatable), e.g. to make it small")
+    p.add_argument("--verbose", action="store_true", help="print the runs' progress")
+    p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
+    p.set_defaults(fn=cmd_conform)
     p = sub.add_parser("render", help="HTML: the expert demo next to a method's final policy")
     p.add_argument("--task", required=True)
     p.add_argument("--method", required=True)

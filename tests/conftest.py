@@ -45,3 +45,16 @@ def avals():
     """A pytree's type signature as jit sees it: (shape, dtype, weak_type) per leaf."""
     import jax
     return lambda tree: [(x.shape, x.dtype, x.weak_type) for x in jax.tree.leaves(tree)]
+
+
+@pytest.fixture
+def temp_method(monkeypatch):
+    """Register a MethodSpec for this test only: temp_method(spec) -> spec."""
+    from bench import plugins
+
+    def register(spec):
+        plugins.all_methods()  # load the real ones first, so the test's spec is not reloaded
+        monkeypatch.setitem(plugins._REGISTRY, spec.name, spec)
+        monkeypatch.setitem(plugins._SOURCES, spec.name, "test")
+        return spec
+    return register

@@ -44,12 +44,9 @@ def toy_train(task, demo, config, ctx, seed):
 
 
 @pytest.fixture
-def toy(monkeypatch):
-    spec = MethodSpec(name="toy", train=toy_train, config_cls=ToyConfig, uses=Uses())
-    plugins.all_methods()
-    monkeypatch.setitem(plugins._REGISTRY, "toy", spec)
-    monkeypatch.setitem(plugins._SOURCES, "toy", "test")
-    return spec
+def toy(temp_method):
+    return temp_method(MethodSpec(name="toy", train=toy_train, config_cls=ToyConfig,
+                                  uses=Uses()))
 
 
 def _req(method="toy", steps=1000, seed=0, **over):

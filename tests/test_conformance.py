@@ -1,0 +1,123 @@
+"""The plugin conformance check (bench/conformance.py, `ildbench conform`): every in-repo
+method passes it on pointmass, and it catches a method that re-traces its update, one that
+is not deterministic and one that overruns its budget."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from bench import plugins
+from bench.api import MethodSpec, Policy, TrainResult, Uses
+from bench.conformance import conform, findings, render
+
+# Small configurations: the checks are about the loop, not the score.
+_SB3 = dict(report_every=256, learning_starts=256, updates_per_step=0.25, num_envs=8,
+            steps_per_collect=64, batch_size=64)
+SMALL = {
+    "bc": dict(env_steps=1, overrides=dict(updates=200, chunk=40)),
+    "ild": dict(env_steps=8 * 128 * 12, overrides=dict(num_envs=8, hidden="(64, 64)",
+                                                       bc_updates=50, updates=12)),
+    "shac": dict(env_steps=8 * 32 * 12, overrides=dict(num_envs=8, actor_hidden="32,32",
+                                                       critic_hidden="32,32")),
+    "dac": dict(env_steps=1536, overrides=_SB3),
+    "pwil": dict(env_steps=1536, overrides=dict(_SB3, prefill=512)),
+    "cem_mpc": dict(env_steps=1, overrides=dict(population=16, elites=4, iterations=2, horizon=8)),
+    "cem_mpc_track": dict(env_steps=1, overrides=dict(population=16, elites=4, iterations=2, horizon=8)),
+}
+
+
+def test_every_in_repo_method_has_a_small_conformance_setting():
+    plugins.all_methods()
+    in_repo = {n for n, src in plugins._SOURCES.items() if src.startswith("methods/")}
+    in_repo |= set(plugins._UNAVAILABLE)  # a folder whose dependency is missing here
+    assert "ild" in in_repo and in_repo <= set(SMALL), f"add {sorted(in_repo - set(SMALL))}"
+
+
+@pytest.mark.parametrize("method", sorted(SMALL))
+def test_in_repo_method_conforms(method):
+    if method not in plugins.all_methods():
+        pytest.skip(f"{method} is not available here: {plugins._UNAVAILABLE.get(method)}")
+    found = {f.check: f for f in conform(method, **SMALL[method])}
+    report = render(method, list(found.values()))
+    assert all(f.passed is not False for f in found.values()), report
+    assert found["runs"].passed and found["deterministic"].passed, report
+    loop = method not in ("cem_mpc", "cem_mpc_track")  # planners have no training loop
+    assert (found["compiles once"].passed is True) == loop, report
+
+
+# --- planted faults --------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class FaultConfig:
+    retrace: bool = False
+    """Jit a fresh closure each update (each one a new computation to compile)."""
+    unseeded: bool = False
+    overrun: bool = False
+
+
+def _act(params, obs, key, deterministic):
+    return jnp.clip(-params * obs[..., :1] - obs[..., 1:], -1, 1)
+
+
+_step = jax.jit(lambda g: g * 0.999 + 0.002)
+_draws = iter(range(10**6))
+
+
+def faulty_train(task, demo, config, ctx, seed):
+    gain, steps = jnp.float32(2.0 + (next(_draws) * 1e-3 if config.unseeded else 0.0)), 0
+    while config.overrun and steps < 10_000 or not ctx.should_stop(steps):
+        gain = (jax.jit(lambda g: g * 0.999 + 0.002) if config.retrace else _step)(gain)
+        steps += 100
+        ctx.report(Policy(_act, gain), steps, {"train/loss": float(gain)})
+    return TrainResult(Policy(_act, gain), env_steps=steps)
+
+
+@pytest.fixture
+def faulty(temp_method):
+    return temp_method(MethodSpec(name="faulty", train=faulty_train, config_cls=FaultConfig,
+                                  uses=Uses()))
+
+
+def _check(**over):
+    return {f.check: f for f in conform("faulty", env_steps=1000, evals=1, overrides=over)}
+
+
+def test_a_well_behaved_method_passes_and_the_compile_counts_are_exact(faulty):
+    found = _check()
+    assert [f.passed for f in found.values()] == [True, True, True, True]
+    assert "0 computations in 0 of 8 report intervals" in found["compiles once"].detail
+
+
+def test_a_method_that_retraces_its_update_fails_compiles_once(faulty):
+    found = _check(retrace=True)
+    assert found["compiles once"].passed is False
+    # 10 reports: 8 intervals after the second, each compiling the fresh closure once.
+    assert "8 computations in 8 of 8 report intervals" in found["compiles once"].detail
+    assert found["runs"].passed and found["deterministic"].passed
+
+
+def test_an_unseeded_method_fails_deterministic(faulty):
+    found = _check(unseeded=True)
+    assert found["deterministic"].passed is False and found["runs"].passed
+
+
+def test_a_method_that_ignores_should_stop_fails_budget(faulty):
+    found = _check(overrun=True)
+    assert found["budget"].passed is False
+    assert "used 10000 of 1000 env steps" in found["budget"].detail
+
+
+def test_a_failed_run_reports_its_message_and_stops_there():
+    rec = {"status": "failed", "final_return": None, "final_normalized": None,
+           "message": "RuntimeError: boom\ntraceback"}
+    found = findings([rec], 100)
+    assert [(f.check, f.passed) for f in found] == [("runs", False)]
+    assert "failed: RuntimeError: boom" in found[0].detail
+
+
+def test_bad_input_is_refused_before_any_run():
+    with pytest.raises(plugins.UnknownMethodError):
+        conform("no_such_method")
+    with pytest.raises(ValueError, match="repeats"):
+        conform("bc", repeats=0)
