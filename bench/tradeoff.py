@@ -210,11 +210,18 @@ def ild_requests(task: str, seconds: float, truncations=(1, 10, 30), batches=(8,
             for s in seeds for tr in truncations for b in batches]
 
 
-def ild_table(store: Store, task: str) -> pd.DataFrame:
+def ild_table(store: Store, task: str, version: str | None = None) -> pd.DataFrame:
+    """ILD's truncation x batch runs on `task`, of ILD `version` only (default: the
+    registered one; an older ILD's records left in the store are not mixed in)."""
+    if version is None:
+        from bench.plugins import get_method
+        version = get_method("ild").version
     rows = []
     for r in store.records():
         if r["task"] != task or r["method"] != "ild" or r.get("status") not in ("ok",
                                                                                 "diverged"):
+            continue
+        if str(r.get("method_version")) != str(version):
             continue
         c = r["config"]
         rows.append({"truncation": c["truncation"], "batch": c["num_envs"], "seed": r["seed"],

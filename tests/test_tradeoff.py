@@ -53,8 +53,11 @@ def test_budget_table_reads_anytime_curves(store):
 
 def test_ild_grid_table(store):
     _ild(store, "a", 0, 0.7, {"truncation": 1, "num_envs": 8})
+    _ild(store, "old", 0, 0.1, {"truncation": 1, "num_envs": 8}, version="0")
     df = tradeoff.ild_table(store, "hopper")
-    assert df.iloc[0].truncation == 1 and df.iloc[0].batch == 8
+    assert len(df) == 1 and df.iloc[0].truncation == 1 and df.iloc[0].batch == 8
+    assert df.iloc[0].normalized == 0.7  # the older ILD's record is left out
+    assert tradeoff.ild_table(store, "hopper", version="0").iloc[0].normalized == 0.1
     assert df.iloc[0].env_steps_per_s == pytest.approx(1000 / 180)
     reqs = tradeoff.ild_requests("hopper", 60)
     assert len(reqs) == 9 and {r.overrides["num_envs"] for r in reqs} == {8, 32, 128}
