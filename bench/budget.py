@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
+import os
 import re
 import time
 
@@ -66,14 +68,33 @@ def parse_seconds(text: str) -> float:
 
 class _CompileMeter:
     """Sums JAX compile-event durations, and counts compilations (lowerings), into whichever
-    clock and bucket are active."""
+    clock and bucket are active; and, while a clock is active, reads JAX's own explanations
+    of its tracing-cache misses (`jax_explain_cache_misses`) to find a training function
+    traced again after a report (`Clock.retraced`). The explanations are consumed here, not
+    printed; the flag is restored when the clock closes."""
+
+    _DROP = ("TRACING CACHE MISS", "PERSISTENT COMPILATION CACHE MISS", "Writing ",
+             "Not writing persistent cache", "_get_cache: Unsupported runtime")
+    _LOGGERS = ("jax._src.pjit", "jax._src.compiler", "jax._src.compilation_cache")
 
     def __init__(self):
         self.active: Clock | None = None
         self.bucket = "train"
+        self._saved_flag: bool | None = None
         jax.monitoring.register_event_duration_secs_listener(self._on_event)
+        for name in self._LOGGERS:
+            logging.getLogger(name).addFilter(self._on_log)
 
-    def _on_event(self, event: str, duration: float, **_):
+    def activate(self, clock: "Clock | None") -> None:
+        if clock is not None and self._saved_flag is None:
+            self._saved_flag = bool(jax.config.jax_explain_cache_misses)
+            jax.config.update("jax_explain_cache_misses", True)
+        elif clock is None and self._saved_flag is not None:
+            jax.config.update("jax_explain_cache_misses", self._saved_flag)
+            self._saved_flag = None
+        self.active, self.bucket = clock, "train"
+
+    def _on_event(self, event: str, duration: float, **kw):
         clock = self.active
         if clock is None or event not in _COMPILE_EVENTS:
             return
@@ -81,8 +102,33 @@ class _CompileMeter:
         if event == _LOWERING_EVENT:
             clock.compiles[self.bucket] = clock.compiles.get(self.bucket, 0) + 1
 
+    def _on_log(self, record: logging.LogRecord) -> bool:
+        """A logging filter: False drops the record (the explanations we asked for)."""
+        if self._saved_flag is None:
+            return True
+        msg = record.getMessage()
+        if not msg.startswith(self._DROP):
+            return True
+        if self.active is not None and self.bucket == "train" and \
+                msg.startswith("TRACING CACHE MISS"):
+            self.active.note_trace(msg)
+        return bool(self._saved_flag)  # the user asked for them: still printed
 
-_METER = _CompileMeter()
+
+_NEVER_SEEN = re.compile(r"never seen function:\s*\n\s*(\S+) id=\d+(?: defined at (\S+))?")
+_SEEN = re.compile(r"^  for (\S+?)(?: defined at (\S+))?$", re.M)
+
+
+def _traced_function(msg: str) -> str:
+    """'name (file:line)' of the function a TRACING CACHE MISS explanation is about."""
+    m = _NEVER_SEEN.search(msg) or _SEEN.search(msg)
+    if m is None:
+        return "?"
+    name, where = m.group(1), m.group(2)
+    if where:
+        parts = where.split(os.sep)
+        where = os.sep.join(parts[-2:])
+    return f"{name} ({where})" if where else name
 
 
 class Clock:
@@ -93,10 +139,22 @@ class Clock:
         self.compile_s = {"train": 0.0, "eval": 0.0}
         self.compiles = {"train": 0, "eval": 0}
         """Computations compiled (JAX lowerings) while training / while the harness worked."""
+        self.interval = 0
+        """Reports made so far (the method's RunContext advances it)."""
+        self._first_traced: dict[str, int] = {}
+        self.retraced: dict[str, dict] = {}
+        """Training functions traced again after a report that followed their first trace:
+        'name (file:line)' -> {'count': extra traces, 'why': JAX's explanation of the first}."""
         self._start = time.perf_counter()
         self._paused = 0.0
-        _METER.active = self
-        _METER.bucket = "train"
+        _METER.activate(self)
+
+    def note_trace(self, explanation: str) -> None:
+        fun = _traced_function(explanation)
+        first = self._first_traced.setdefault(fun, self.interval)
+        if first < self.interval:
+            entry = self.retraced.setdefault(fun, {"count": 0, "why": _why(explanation)})
+            entry["count"] += 1
 
     def elapsed(self) -> float:
         t = time.perf_counter() - self._start - self._paused
@@ -114,4 +172,13 @@ class Clock:
 
     def close(self):
         if _METER.active is self:
-            _METER.active = None
+            _METER.activate(None)
+
+
+def _why(explanation: str, lines: int = 8) -> str:
+    """JAX's explanation without its first line (call site and cost), shortened."""
+    body = [ln.strip() for ln in explanation.splitlines()[1:] if ln.strip()]
+    return " / ".join(body[:lines])[:600]
+
+
+_METER = _CompileMeter()

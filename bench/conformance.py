@@ -7,10 +7,12 @@ task under an env-step budget, `repeats` times with one seed:
 - runs:          the run finishes 'ok' with a finite final score;
 - budget:        it stops near its env-step budget (at most twice the budget: one update or
                  chunk past the last `should_stop` check is normal);
-- compiles once: between its second report and its last it compiles nothing (JAX lowerings
-                 metered by the harness). A method that compiles in two or more of those
-                 intervals re-traces its update each time, which a wall-clock budget pays for
-                 silently (SHAC lost 150 of 180 s to it before a weak type was fixed);
+- compiles once: no function is traced (and compiled) again once a report has followed its
+                 first trace (the harness reads JAX's explanations of its tracing-cache
+                 misses, which also say why: "now f32[]{weak_type=True} and before
+                 f32[]"). One that is re-traces its update, which a wall-clock budget pays
+                 for silently (SHAC lost 150 of 180 s on hopper to one extra compile of its
+                 epoch before a weak type was fixed);
 - deterministic: the same seed gives the same final return (on one machine, CPU).
 
 A check that cannot apply (a planner reports nothing while it "trains") reads n/a.
@@ -71,21 +73,22 @@ def findings(records: list[dict], env_steps: int) -> list[Finding]:
                            "" if used <= 2 * env_steps else
                            ": call ctx.should_stop(env_steps) before each update and pass "
                            "the steps simulated so far")))
-    steady = first.get("steady_compiles")
-    if steady is None:
+    again = first.get("retraced")
+    if again is None:
         out.append(Finding("compiles once", None,
-                           f"n/a: {len(first['curve'])} evaluations and fewer than 3 reports "
-                           "(a method without a training loop, or a budget too small to "
-                           "report 3 times: raise env_steps)"))
+                           f"n/a: {first.get('reports', 0)} reports (a method without a "
+                           "training loop)"))
     else:
-        bad = steady["intervals_compiling"] >= 2
+        total = first["compiles"]["train"]
         out.append(Finding(
-            "compiles once", not bad,
-            f"compiled {steady['compiles']} computations in {steady['intervals_compiling']} of "
-            f"{steady['intervals']} report intervals after the second ({steady['seconds']:.2f}s)"
-            + ("; the update is re-traced each time: keep the carried state's dtypes, weak "
-               "types and shapes fixed (cast Python scalars with jnp.float32), jit one "
-               "function object once, keep static arguments constant" if bad else "")))
+            "compiles once", not again,
+            f"{total} computations compiled in training over {first['reports']} reports, "
+            + ("none traced again" if not again else
+               "traced again after a report: " + "; ".join(
+                   f"{fun} {v['count']}x (JAX: {v['why']})" for fun, v in again.items())
+               + ". Keep the carried state's dtypes, weak types and shapes fixed (cast "
+               "Python scalars with jnp.float32), jit one function object once, keep static "
+               "arguments constant")))
     if len(records) < 2:
         out.append(Finding("deterministic", None, "n/a: one repeat"))
     else:

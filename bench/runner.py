@@ -202,11 +202,11 @@ class RunContext:
         self.last_metrics: dict = {}
         self.last_trajectory = None  # matched states of the last evaluation's first episode
         self.log = log
+        self.reports = 0
         self._evaluator = evaluator
         self._next_eval_s = 0.0 if budget.seconds is None else budget.seconds / budget.evals
         self._next_eval_steps = (None if budget.env_steps is None
                                  else budget.env_steps / budget.evals)
-        self._compile_marks: list[tuple[int, float]] = []  # training compiles at each report
 
     def elapsed(self) -> float:
         return self.clock.elapsed()
@@ -232,7 +232,8 @@ class RunContext:
                force_eval: bool = False) -> None:
         """Call from the method's outer loop. Records metrics; evaluates when due (clock
         paused). Raises Diverged if the metrics or the policy are non-finite."""
-        self._compile_marks.append((self.clock.compiles["train"], self.clock.compile_s["train"]))
+        self.clock.interval += 1
+        self.reports += 1
         metrics = {k: float(v) for k, v in (metrics or {}).items()}
         self.last_metrics = metrics
         bad = [k for k, v in metrics.items() if not np.isfinite(v)]
@@ -251,21 +252,19 @@ class RunContext:
                 while self._next_eval_steps <= env_steps:
                     self._next_eval_steps += b.env_steps / b.evals
 
-    def steady_compiles(self) -> dict | None:
-        """What training compiled between its second report and its last: a method whose
-        update compiles once compiles nothing there (its first update, and a warm start
-        before it, fall before the second report). Compiling in several intervals means the
-        update is re-traced each time: a carried state whose types or shapes change (a
-        weakly typed leaf, a Python scalar), a fresh closure or a static argument that varies.
-        None when the method reported fewer than 3 times (nothing to measure)."""
-        marks = self._compile_marks[1:]
-        if len(marks) < 2:
+    def retraced(self) -> dict[str, dict] | None:
+        """Training functions JAX traced again after a report that followed their first
+        trace: 'name (file:line)' -> {'count', 'why'} ('why': JAX's own explanation of the
+        cache miss, e.g. "at x, now f32[]{weak_type=True} and before f32[]"). A method whose
+        update compiles once has none: a warm start and the first update trace before, or
+        between, its first reports, each once. An entry means that function was compiled
+        again: a carried state whose dtypes, weak types or shapes change (brax's hopper
+        writing a Python float into a metric made SHAC compile its epoch twice), a fresh
+        `jax.jit` closure per update, a static argument that varies. None when the method
+        never reported (a planner: nothing to compare)."""
+        if self.reports < 1:
             return None
-        steps = [(b[0] - a[0], b[1] - a[1]) for a, b in zip(marks, marks[1:])]
-        return {"intervals": len(steps),
-                "intervals_compiling": sum(n > 0 for n, _ in steps),
-                "compiles": sum(n for n, _ in steps),
-                "seconds": round(sum(t for _, t in steps), 3)}
+        return {k: dict(v) for k, v in self.clock.retraced.items()}
 
     def evaluate(self, policy: Policy, env_steps: int) -> dict:
         with self.clock.paused():
@@ -368,13 +367,10 @@ def execute(p: Prepared, store: Store, force: bool = False,
         final = ctx.curve[-1] if ctx.curve else {"return": None, "normalized": None,
                                                  "env_steps": 0, "train_s": train_s}
     ctx.clock.close()
-    steady = ctx.steady_compiles()
-    if steady is not None and steady["intervals_compiling"] >= 2:
-        log(f"  warning: {spec.name} compiled {steady['compiles']} computations in "
-            f"{steady['intervals_compiling']} of its {steady['intervals']} report intervals "
-            f"after the second ({steady['seconds']:.1f}s of its budget): its update is "
-            "re-traced each time; look for a carried state whose types or shapes change "
-            "(weak types, Python scalars) or a static argument that varies")
+    retraced = ctx.retraced()
+    for fun, info in (retraced or {}).items():
+        log(f"  warning: {spec.name} traced {fun} again {info['count']}x after a report "
+            f"(compiled again, inside its budget); JAX says: {info['why']}")
     record = {
         "run_id": p.run_id, "method": spec.name, "method_version": spec.version,
         "task": req.task, "seed": req.seed, "preset": req.preset,
@@ -392,7 +388,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "env_steps": int(result.env_steps) if result is not None else final.get("env_steps", 0),
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},
-        "compiles": dict(ctx.clock.compiles), "steady_compiles": steady,
+        "compiles": dict(ctx.clock.compiles), "retraced": retraced, "reports": ctx.reports,
         "references": {"expert_return": p.demo.expert_return,
                        "random_return": p.demo.random_return},
         "demo": {"path": os.path.relpath(p.demo.path, _REPO), "sha256": p.demo.sha256},
