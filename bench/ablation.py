@@ -61,20 +61,31 @@ def _direction(x: float, base: float) -> str:
     return "up" if x > base else "down"
 
 
-def table(store: Store, task: str, seconds: float | None = None,
-          version: str | None = None) -> pd.DataFrame:
-    """Runs of ILD's `version` only (default: the registered one), so seeds of an older ILD
-    left in the store never pool with today's."""
+def ild_version(version: str | None = None) -> str:
+    """`version`, or the registered ILD's."""
     if version is None:
         from bench.plugins import get_method
         version = get_method("ild").version
-    rows = []
+    return str(version)
+
+
+def ild_runs(store: Store, task: str, version: str | None = None):
+    """Finished ('ok'/'diverged') ILD records on `task` of ILD `version` only (default: the
+    registered one), so seeds of an older ILD left in a store never pool with today's."""
+    version = ild_version(version)
     for r in store.records():
-        if r["task"] != task or r["method"] != "ild" or r.get("status") not in ("ok",
-                                                                                "diverged"):
-            continue
-        if str(r.get("method_version")) != str(version):
-            continue
+        if (r["task"] == task and r["method"] == "ild"
+                and r.get("status") in ("ok", "diverged")
+                and str(r.get("method_version")) == version):
+            yield r
+
+
+def table(store: Store, task: str, seconds: float | None = None,
+          version: str | None = None) -> pd.DataFrame:
+    """Runs of ILD's `version` only (default: the registered one): `ild_runs`."""
+    version = ild_version(version)
+    rows = []
+    for r in ild_runs(store, task, version):
         if seconds is not None and (r.get("budget") or {}).get("seconds") != seconds:
             continue
         name = _setting_of(r)

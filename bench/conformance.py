@@ -61,12 +61,11 @@ def findings(records: list[dict], env_steps: int) -> list[Finding]:
     out = []
     ok = [r["status"] == "ok" and r["final_return"] is not None
           and math.isfinite(r["final_return"]) for r in records]
-    out.append(Finding("runs", all(ok), "ok, final normalized "
-                       f"{first['final_normalized']:.3f}" if all(ok) else
-                       "; ".join(f"{r['status']}: {r['message'].splitlines()[0] if r['message'] else ''}"
-                                 for r, good in zip(records, ok) if not good)))
     if not all(ok):
-        return out
+        why = [r["status"] + ": " + (r["message"] or "").partition("\n")[0]
+               for r, good in zip(records, ok) if not good]
+        return [Finding("runs", False, "; ".join(why))]
+    out.append(Finding("runs", True, f"ok, final normalized {first['final_normalized']:.3f}"))
     used = int(first["env_steps"])
     out.append(Finding("budget", used <= 2 * env_steps,
                        f"used {used} of {env_steps} env steps" + (

@@ -202,7 +202,6 @@ class RunContext:
         self.last_metrics: dict = {}
         self.last_trajectory = None  # matched states of the last evaluation's first episode
         self.log = log
-        self.reports = 0
         self._evaluator = evaluator
         self._next_eval_s = 0.0 if budget.seconds is None else budget.seconds / budget.evals
         self._next_eval_steps = (None if budget.env_steps is None
@@ -232,8 +231,7 @@ class RunContext:
                force_eval: bool = False) -> None:
         """Call from the method's outer loop. Records metrics; evaluates when due (clock
         paused). Raises Diverged if the metrics or the policy are non-finite."""
-        self.clock.interval += 1
-        self.reports += 1
+        self.clock.interval += 1  # = reports so far
         metrics = {k: float(v) for k, v in (metrics or {}).items()}
         self.last_metrics = metrics
         bad = [k for k, v in metrics.items() if not np.isfinite(v)]
@@ -251,6 +249,11 @@ class RunContext:
             if self._next_eval_steps is not None:
                 while self._next_eval_steps <= env_steps:
                     self._next_eval_steps += b.env_steps / b.evals
+
+    @property
+    def reports(self) -> int:
+        """Reports the method has made (the clock counts them to date its traces)."""
+        return self.clock.interval
 
     def retraced(self) -> dict[str, dict] | None:
         """Training functions JAX traced again after a report that followed their first

@@ -213,16 +213,9 @@ def ild_requests(task: str, seconds: float, truncations=(1, 10, 30), batches=(8,
 def ild_table(store: Store, task: str, version: str | None = None) -> pd.DataFrame:
     """ILD's truncation x batch runs on `task`, of ILD `version` only (default: the
     registered one; an older ILD's records left in the store are not mixed in)."""
-    if version is None:
-        from bench.plugins import get_method
-        version = get_method("ild").version
+    from bench.ablation import ild_runs
     rows = []
-    for r in store.records():
-        if r["task"] != task or r["method"] != "ild" or r.get("status") not in ("ok",
-                                                                                "diverged"):
-            continue
-        if str(r.get("method_version")) != str(version):
-            continue
+    for r in ild_runs(store, task, version):
         c = r["config"]
         rows.append({"truncation": c["truncation"], "batch": c["num_envs"], "seed": r["seed"],
                      "status": r["status"], "normalized": r["final_normalized"],
