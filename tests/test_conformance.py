@@ -150,3 +150,33 @@ def test_bad_input_is_refused_before_any_run():
         conform("no_such_method")
     with pytest.raises(ValueError, match="repeats"):
         conform("bc", repeats=0)
+
+
+def test_jax_explains_its_cache_misses_through_a_logger_the_meter_watches():
+    """The meter filters named loggers (a filter sees only its own logger's records); JAX
+    moved the explanations from jax._src.pjit to jax._src.interpreters.partial_eval in 0.10,
+    and an unwatched logger means no retrace is ever caught (and the log fills with them)."""
+    import logging
+
+    from bench.budget import _CompileMeter
+
+    names = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("TRACING CACHE MISS"):
+                names.append(record.name)
+
+    handler, log = Catch(), logging.getLogger("jax")
+    log.addHandler(handler)
+    saved = jax.config.jax_explain_cache_misses
+    jax.config.update("jax_explain_cache_misses", True)
+    try:
+        f = jax.jit(lambda x: x * 2.0)
+        f(jnp.ones(3)).block_until_ready()
+        f(jnp.ones(4)).block_until_ready()      # a new shape: traced again, and explained
+    finally:
+        jax.config.update("jax_explain_cache_misses", saved)
+        log.removeHandler(handler)
+    assert names, "no TRACING CACHE MISS explanation was logged under the 'jax' logger"
+    assert set(names) <= set(_CompileMeter._LOGGERS), (names, _CompileMeter._LOGGERS)
