@@ -223,7 +223,8 @@ def ild_table(store: Store, task: str, version: str | None = None) -> pd.DataFra
                      "env_steps": r["env_steps"],
                      "env_steps_per_s": r["env_steps"] / max(r["train_s"], 1e-9),
                      "budget_s": r["budget"]["seconds"]})
-    return pd.DataFrame(rows)
+    df = pd.DataFrame(rows)
+    return df.sort_values(["truncation", "batch", "seed"], ignore_index=True) if rows else df
 
 
 def _save(df: pd.DataFrame, task: str, part: str, out: str) -> list[str]:

@@ -54,8 +54,11 @@ def test_budget_table_reads_anytime_curves(store):
 def test_ild_grid_table(store):
     _ild(store, "a", 0, 0.7, {"truncation": 1, "num_envs": 8})
     _ild(store, "old", 0, 0.1, {"truncation": 1, "num_envs": 8}, version="0")
+    _ild(store, "c", 0, 0.5, {"truncation": 30, "num_envs": 8})
+    _ild(store, "d", 0, 0.6, {"truncation": 1, "num_envs": 128})
     df = tradeoff.ild_table(store, "hopper")
-    assert len(df) == 1 and df.iloc[0].truncation == 1 and df.iloc[0].batch == 8
+    assert list(zip(df.truncation, df.batch)) == [(1, 8), (1, 128), (30, 8)]  # a grid, read
+    assert df.iloc[0].truncation == 1 and df.iloc[0].batch == 8
     assert df.iloc[0].normalized == 0.7  # the older ILD's record is left out
     assert tradeoff.ild_table(store, "hopper", version="0").iloc[0].normalized == 0.1
     assert df.iloc[0].env_steps_per_s == pytest.approx(1000 / 180)
