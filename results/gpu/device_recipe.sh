@@ -7,34 +7,47 @@
 # --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 ...`).
 # tasks/jax_compat.py restores the two names brax 0.14.2 needs on that JAX.
 #
-#   bash results/gpu/device_recipe.sh SEED 4m CELL_TIMEOUT_S     (SEED = 0, 1, 2)
+#   bash results/gpu/device_recipe.sh SEED 4m CELL_TIMEOUT_S [METHOD]  (SEED = 0, 1, 2)
 #
-# Per call: 8 ILD sweeps (one task each, --preset paper: B = 360) pinned to one CPU core
-# each, plus 2 BC sweeps (4 tasks each, 2 cores each), all sharing the one GPU. Seed 0's
-# humanoid cell ran past its call's limit and was re-run during seed 2's call as a 9th
-# concurrent ILD sweep on 2 cores (its record says cpus 2).
-export S=$1 B=$2 T=$3
+# Per call: 8 sweeps of METHOD (default ild; one task each, --preset paper: ILD's B = 360)
+# pinned to one CPU core each, plus 2 side sweeps (2 cores each; default BC on 4 tasks each;
+# SIDE1 / SIDE2 replace their arguments), all sharing the one GPU: 10 concurrent sweeps.
+# Session 14 (ILD, BC): seed 0's humanoid cell ran past its call's limit and was re-run
+# during seed 2's call as a 9th concurrent ILD sweep on 2 cores (its record says cpus 2).
+# Session 16 (references): METHOD=shac, and the sides ran the planners, e.g.
+#   SIDE1="--methods cem_mpc --tasks ant --seeds 3 --seed-start 0 --evals 1 --eval-episodes 8"
+# (a side's --seeds / --seed-start come after the defaults and win; SIDE1=none skips it), and
+# CELLS="0:hopper 1:ant ..." replaced the per-task list (one core per seed:task; default:
+# SEED on the 8 tasks).
+export S=$1 B=$2 T=$3 M=${4:-ild}
+SIDE1=${SIDE1:-"--methods bc --tasks hopper ant humanoid walker2d"}
+SIDE2=${SIDE2:-"--methods bc --tasks reacher swimmer inverted_pendulum acrobot"}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1 \
     ILDBENCH_JAX_CACHE=/tmp/jaxcache STORE=results/gpu/runs
-mkdir -p /tmp/logs
-sw() { tag=$1; shift; timeout $T python3 -c "from bench.cli import main; main()" sweep "$@" \
-    --seeds 1 --seed-start $S --transfer --store $STORE --out /tmp/tables_$tag \
-    > /tmp/logs/$tag.s$S.log 2>&1; }
+mkdir -p /tmp/logs && touch /tmp/stamp
+sw() { tag=$1; shift; timeout $T python3 -c "from bench.cli import main; main()" sweep \
+    --seeds 1 --seed-start $S --transfer --store $STORE --out /tmp/tables_$tag "$@" \
+    > /tmp/logs/$tag.log 2>&1; }
 export -f sw
 pids=()
 i=0
-for t in hopper ant humanoid walker2d reacher swimmer inverted_pendulum acrobot; do
-  taskset -c $i bash -c "sw ild_$t --methods ild --tasks $t --budget $B --preset paper" &
+CELLS=${CELLS:-$(for t in hopper ant humanoid walker2d reacher swimmer inverted_pendulum \
+    acrobot; do echo -n "$S:$t "; done)}
+for c in $CELLS; do
+  s=${c%%:*} t=${c#*:}
+  taskset -c $i bash -c "sw ${M}_$t.s$s --methods $M --tasks $t --budget $B --preset paper \
+      --seed-start $s" &
   pids+=($!); i=$((i+1))
 done
-taskset -c 8,9 bash -c "sw bc1 --methods bc --tasks hopper ant humanoid walker2d \
-    --budget $B --preset paper" & pids+=($!)
-taskset -c 10,11 bash -c "sw bc2 --methods bc --tasks reacher swimmer inverted_pendulum \
-    acrobot --budget $B --preset paper" & pids+=($!)
+for side in SIDE1 SIDE2; do
+  [ "${!side}" = none ] && continue
+  taskset -c $i,$((i+1)) bash -c "sw $side.s$S ${!side} --budget $B --preset paper" & pids+=($!)
+  i=$((i+2))
+done
 (while true; do sleep 60; nvidia-smi --query-gpu=utilization.gpu,memory.used \
     --format=csv,noheader; done) > /tmp/logs/smi.s$S.log 2>&1 &
 wait "${pids[@]}"
-tar czf $OUT/runs_s$S.tgz $STORE
+find $STORE -type f -newer /tmp/stamp | tar czf $OUT/runs_s$S.tgz -T -
 tar czf $OUT/logs_s$S.tgz /tmp/logs
