@@ -156,6 +156,21 @@ def task_with_backend(name: str, backend: str) -> Task:
     return Task(spec=spec, env=build_env(spec))
 
 
+def without_joint_limits(task: Task) -> Task:
+    """A fresh copy of brax task `task` with its joint-range constraints removed (`sys.dof.limit
+    = None`; the registry's cached task is left as it is). brax's generalized backend solves
+    joint ranges like contacts, which makes a loss through them rough (swimmer: README, ILD
+    section); the copy is the smooth surrogate. Errors for a task that has no limits."""
+    env = build_env(task.spec)
+    inner = env.unwrapped
+    dof = getattr(getattr(inner, "sys", None), "dof", None)
+    if dof is None or dof.limit is None:
+        raise ValueError(f"task {task.name!r} has no brax joint limits to remove "
+                         "(this is for brax tasks with limited joints)")
+    inner.sys = inner.sys.replace(dof=dof.replace(limit=None))
+    return Task(spec=task.spec, env=env)
+
+
 @functools.lru_cache(maxsize=None)
 def make_task(name: str) -> Task:
     """Build (once per process) the task registered under `name`."""

@@ -354,6 +354,52 @@ def test_truncated_gradient_points_uphill_on_inverted_pendulum():
     assert short["cosine"] < -0.5 and full["cosine"] > 0.99
 
 
+def test_probe_without_joint_limits_lets_a_joint_pass_its_range():
+    """`probe --no-joint-limits` (the swimmer finding, ILD section of the README): the copy's
+    cart, pushed at full force for 40 steps, runs past its slider's range [-1, 1]; the
+    registry's task (left as it was) stops it there. pointmass has no limits: a clear error."""
+    from tasks.core import without_joint_limits
+    task = make_task("inverted_pendulum")
+    free = without_joint_limits(task)
+    assert task.env.unwrapped.sys.dof.limit is not None and free.env is not task.env
+
+    def pushed(t):
+        def body(s, _):
+            return t.env.step(s, jnp.ones(t.action_size)), None
+        s = jax.lax.scan(body, t.env.reset(jax.random.PRNGKey(0)), None, length=40)[0]
+        return float(s.pipeline_state.q[0])
+
+    assert pushed(task) < 1.05 and pushed(free) > 1.5
+    with pytest.raises(ValueError, match="no brax joint limits"):
+        without_joint_limits(make_task("pointmass"))
+
+
+def test_ild_joint_limits_off_differentiates_through_the_limitless_copy(monkeypatch):
+    """ILDConfig.joint_limits=False hands the update the copy without limits (the rollouts'
+    physics) and leaves the task itself alone; on a task without limits it says so."""
+    import importlib
+    ild_train = importlib.import_module("methods.ild.train")  # the module, not the function
+    seen = []
+
+    def spy(task, *args, **kw):
+        seen.append(task)
+        raise RuntimeError("stop after make_update")
+
+    monkeypatch.setattr(ild_train, "make_update", spy)
+    task = make_task("inverted_pendulum")
+    demo = load_demo(task.spec.demo_path, task)
+    for limits in (True, False):
+        with pytest.raises(RuntimeError, match="stop after"):
+            ild_train.train(task, demo, _cfg(joint_limits=limits, bc_updates=0), None, 0)
+    assert seen[0] is task and seen[1] is not task
+    assert seen[1].env.unwrapped.sys.dof.limit is None
+    assert task.env.unwrapped.sys.dof.limit is not None
+    point = make_task("pointmass")
+    with pytest.raises(ValueError, match="no brax joint limits"):
+        ild_train.train(point, load_demo(point.spec.demo_path, point),
+                        _cfg(joint_limits=False, bc_updates=0), None, 0)
+
+
 def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
     """methods.ild.probe on pointmass (linear dynamics, no contacts): central differences at
     eps 1e-3 equal the analytic directional derivative, and Adam's first step at a tiny lr

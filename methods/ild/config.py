@@ -76,6 +76,11 @@ class ILDConfig:
     compute; measured by `python -m methods.ild.benchmark`."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update)."""
+    joint_limits: bool = True
+    """False: the training rollouts run on a copy of the task without its joint-range
+    constraints (`tasks.core.without_joint_limits`), a smooth surrogate where brax solves
+    limits like contacts and the loss through them is rough (swimmer, README ILD section).
+    The policy is still evaluated on the task itself, limits and all."""
 
     def __post_init__(self):
         checks = [

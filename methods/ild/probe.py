@@ -1,6 +1,6 @@
 """How far does ILD's gradient reach? A probe of the loss around the BC warm start.
 
-    python -m methods.ild.probe --task hopper [--num-envs 10] [--positions-only]
+    python -m methods.ild.probe --task hopper [--num-envs 10] [--positions-only] [--no-joint-limits]
 
 From the BC warm start (the point every ILD run starts from) it takes one batch of rollouts
 with fixed action noise and initial states, so the loss is a deterministic function of the
@@ -16,6 +16,11 @@ policy parameters, and prints:
 - the gradient ILD's update actually follows (the config's truncation and per-step
   normalization): its cosine with the true gradient, and the loss after Adam's first step
   along it. A negative cosine means the update climbs the loss it is meant to descend.
+
+`--no-joint-limits` runs the same probe on a copy of the task whose joint-range constraints
+are removed (brax `sys.dof.limit = None`): where the loss turns smooth without them, the
+roughness came from limits switching on and off between time steps (brax's generalized
+backend solves them as constraints, like contacts).
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ import numpy as np
 from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_pairs
 from methods.ild.config import TASK_OVERRIDES, ILDConfig
 from methods.ild.train import StateNorm, bc_warm_start, make_rollout_loss
+from tasks.core import without_joint_limits
 
 EPS = (1e-6, 1e-5, 1e-4, 1e-3)
 LRS = (1e-6, 1e-5, 1e-4, 1e-3)
@@ -102,16 +108,21 @@ def main(argv=None):
                     help="cloth: leave particle velocities out of the loss")
     ap.add_argument("--truncation", type=int, default=None,
                     help="the update's truncation window (default: ILD's for the task)")
+    ap.add_argument("--no-joint-limits", action="store_true",
+                    help="probe a copy of the task without its joint-range constraints")
     args = ap.parse_args(argv)
     enable_compilation_cache()
     task = make_task(args.task)
     demo = load_demo(task.spec.demo_path, task)
+    if args.no_joint_limits:
+        task = without_joint_limits(task)
     config = dataclasses.replace(ILDConfig(num_envs=args.num_envs),
                                  **TASK_OVERRIDES.get(args.task, {}))
     if args.truncation is not None:
         config = dataclasses.replace(config, truncation=args.truncation)
     r = probe(task, demo, config, args.seed, positions_only=args.positions_only)
-    print(f"{args.task}{' (positions only)' if args.positions_only else ''}: B = "
+    print(f"{args.task}{' (positions only)' if args.positions_only else ''}"
+          f"{' (no joint limits)' if args.no_joint_limits else ''}: B = "
           f"{config.num_envs}, {r['params']} parameters, from the BC warm start")
     print(f"loss {r['loss']:.4f} (4 other action-noise draws: "
           f"{', '.join(f'{x:.4f}' for x in r['other_keys'])})")

@@ -20,6 +20,7 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
                                    make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
+from tasks.core import without_joint_limits
 
 
 @flax.struct.dataclass
@@ -179,7 +180,9 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
         params, bc_final = bc_warm_start(policy, params, obs, actions, config, bc_key)
         ctx.report(Policy(act, params), 0, {"bc/loss": bc_final}, force_eval=True)
 
-    update, opt, lr = make_update(task, policy, goals, norm, config, reset_key)
+    # the physics the rollouts differentiate through (evaluation always uses `task`)
+    rollout_task = task if config.joint_limits else without_joint_limits(task)
+    update, opt, lr = make_update(rollout_task, policy, goals, norm, config, reset_key)
     chunk = jax.jit(lambda s: jax.lax.scan(update, s, None, length=config.chunk))
     state = initial_state(params, opt, loop_key, config)
     env_steps, done = 0, 0
