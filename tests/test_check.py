@@ -50,6 +50,12 @@ def test_gate_passes_unchanged_and_fails_a_planted_regression(tmp_path):
     assert not ok
     line = next(l for l in report.splitlines() if l.startswith("bc/pointmass"))
     assert "FAIL: dropped" in line and "canary gate: FAIL" in report
+    # a canary whose budget changed since the reference was written is not compared with it
+    changed = [check.Canary("bc", "pointmass", 1, (("updates", 299),))]
+    ok, report = check.check(str(ref), suite=changed, log=lambda s: None)
+    line = next(l for l in report.splitlines() if l.startswith("bc/pointmass"))
+    assert not ok and "canary changed since its reference" in line
+    assert "'updates': 300" in line and "'updates': 299" in line and "--update" in line
 
 
 def test_committed_reference_covers_the_suite():
@@ -57,6 +63,9 @@ def test_committed_reference_covers_the_suite():
     assert set(data["canaries"]) == {c.key for c in check.SUITE}
     assert all(v["mean"] is not None and v["n"] == len(check.SEEDS)
                for v in data["canaries"].values())
+    # the reference was measured with the suite's budgets and overrides as they are now
+    assert {c.key: c.definition for c in check.SUITE} == {
+        k: v["canary"] for k, v in data["canaries"].items()}
 
 
 def test_bad_reference_file_is_a_clear_error(tmp_path, capsys):
