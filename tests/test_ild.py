@@ -206,6 +206,22 @@ def test_analytic_gradient_matches_finite_differences():
         np.testing.assert_allclose(analytic, numeric, rtol=1e-4)
 
 
+def test_remat_computes_the_same_loss_and_gradient():
+    """remat=True (jax.checkpoint on each step, ant's override) recomputes the
+    forward inside the backward pass: the same loss and gradient, to float32 round-off,
+    with per-step gradient normalization and truncation in the path."""
+    out = {}
+    for remat in (False, True):
+        loss, params, keys = _setup(_cfg(remat=remat, truncation=10))
+        out[remat] = jax.jit(jax.value_and_grad(lambda p: loss(p, jax.random.PRNGKey(2),
+                                                               keys)[0]))(params)
+    assert float(out[False][0]) == pytest.approx(float(out[True][0]), rel=1e-6)
+    for a, b in zip(jax.tree_util.tree_leaves(out[False][1]),
+                    jax.tree_util.tree_leaves(out[True][1])):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+    assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
+
+
 def test_truncation_cuts_the_gradient_path():
     """With truncation 1, the final state depends on earlier actions only through the
     stop_gradient'ed state: changing the window changes the gradient."""
@@ -276,6 +292,16 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
                                                              rel=0.02)
 
 
+def test_benchmark_leaves_apg_out_where_the_reward_has_no_gradient():
+    """APG descends minus the reward: on inverted_pendulum (a constant reward of 1 per step)
+    its gradient is identically zero, XLA drops the backward pass, and its 'training/sps'
+    (70k env-steps/s, the forward rollout's own) is no yardstick for ILD's update. pointmass's
+    reward (minus the distance to the goal) has a gradient."""
+    from methods.ild.benchmark import reward_gradient_norm
+    assert reward_gradient_norm(make_task("inverted_pendulum")) == 0.0
+    assert reward_gradient_norm(make_task("pointmass")) > 0.1
+
+
 def test_budget_lr_schedule_decays_over_the_budget_spent(store):
     """lr_schedule='budget' (the default): update k of 15 (env-step budget) runs at
     lr0 + k/15 (lr_end - lr0); 'linear' decays over `updates` (5000) and has barely moved
@@ -339,6 +365,10 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
     ild = get_method("ild")
     assert build_config(ild, "inverted_pendulum", "cpu").truncation == 128
     assert build_config(ild, "hopper", "cpu").truncation == 10
+    # rematerialized backward where it measured faster and scored higher (config.py)
+    assert build_config(ild, "ant", "cpu").remat and build_config(ild, "ant", "paper").remat
+    assert not build_config(ild, "humanoid", "cpu").remat
+    assert not build_config(ild, "hopper", "cpu").remat
 
 
 @pytest.mark.slow

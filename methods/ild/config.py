@@ -138,4 +138,17 @@ TASK_OVERRIDES: dict[str, dict] = {
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.
     "cloth": {"num_envs": 10, "learning_rate": 1e-4},
+    # ant: rematerialize each step in the backward pass. The same gradient (each step's
+    # forward is recomputed next to its backward, not approximated; tested), computed 1.34x
+    # faster on one CPU core at B = 32 (2.215 -> 1.649 s per update, `python -m
+    # methods.ild.benchmark --task ant`, session 18): ant's per-step residuals are large, and
+    # re-reading them from 128 stacked steps costs more than recomputing. ILD is budget-bound
+    # on ant (0.20 / 0.40 / 0.49 at 1 / 2 / 3 minutes), and the speed is score there: 3-minute
+    # cells, same session and load, 109-110 updates and 0.507 / 0.601 / 0.637 over seeds 0-2
+    # with remat vs 82-88 updates and 0.496 / 0.502 / 0.564 without (README ILD section).
+    # humanoid keeps the default although remat is 1.21x faster there: the same comparison
+    # gave 75-78 vs 59-60 updates but 0.764 / 0.812 / 0.839 vs 0.849 / 0.860 / 0.860. The
+    # other tasks gain 1.02-1.25x (swimmer's generalized backend loses: 0.94x) and reach their
+    # plateau within 3 minutes; an override is a new config for every record made without it.
+    "ant": {"remat": True},
 }
