@@ -49,8 +49,10 @@ class Canary:
 
     @property
     def definition(self) -> dict:
-        """What the reference's numbers were measured with (stored beside them)."""
-        return {"env_steps": self.env_steps, "overrides": {k: v for k, v in self.overrides}}
+        """What the reference's numbers were measured with (stored beside them), as JSON
+        reads it back (a tuple-valued override compares equal to the list it is stored as)."""
+        return json.loads(json.dumps({"env_steps": self.env_steps,
+                                      "overrides": dict(self.overrides)}))
 
 
 # pointmass (the test task) and inverted_pendulum (the cheapest Brax task).

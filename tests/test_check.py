@@ -75,3 +75,11 @@ def test_bad_reference_file_is_a_clear_error(tmp_path, capsys):
         check.load_reference(str(bad))
     with pytest.raises(FileNotFoundError, match="ildbench check --update"):
         check.load_reference(str(tmp_path / "none.json"))
+
+
+def test_canary_definition_reads_as_its_stored_json():
+    """The definition stored beside a reference compares equal after a JSON round trip, so
+    a tuple-valued override does not fail the gate as 'changed' forever."""
+    c = check.Canary("ild", "pointmass", 10, (("hidden", (64, 64)), ("num_envs", 8)))
+    assert c.definition == {"env_steps": 10, "overrides": {"hidden": [64, 64], "num_envs": 8}}
+    assert json.loads(json.dumps(c.definition)) == c.definition
