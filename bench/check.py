@@ -132,6 +132,12 @@ def compare(reference: Mapping[str, dict], now: Mapping[str, dict], abs_tol: flo
         if cur is None:
             out.append(Verdict(key, ref["mean"], None, tol, False,
                                "canary missing from this run"))
+        elif ref.get("canary") is not None and ref["canary"] != cur.get("canary"):
+            # a canary whose budget or overrides changed since its reference was written is
+            # not comparable with it: fail, naming both and the fix
+            out.append(Verdict(key, ref["mean"], cur["mean"], tol, False, (
+                f"canary changed since its reference (reference: {ref['canary']}, now: "
+                f"{cur.get('canary')}); run `ildbench check --update` and commit the reference")))
         elif cur["mean"] is None:
             out.append(Verdict(key, ref["mean"], None, tol, False,
                                "a run failed or diverged: " + str(cur["scores"])))
@@ -167,17 +173,6 @@ def load_reference(path: str = REFERENCE) -> dict:
     return data["canaries"]
 
 
-def _same_definition(v: Verdict, ref: Mapping | None, suite: Sequence[Canary]) -> Verdict:
-    """A canary whose budget or overrides changed since its reference was written is not
-    comparable with it: fail, naming both and the fix (the reference says what it measured)."""
-    c = next((c for c in suite if c.key == v.key), None)
-    if c is None or ref is None or ref.get("canary") == c.definition:
-        return v
-    return dataclasses.replace(v, passed=False, why=(
-        f"canary changed since its reference (reference: {ref.get('canary')}, now: "
-        f"{c.definition}); run `ildbench check --update` and commit the reference"))
-
-
 def check(reference_path: str = REFERENCE, update: bool = False, store_dir: str | None = None,
           extra: Mapping[str, Mapping[str, object]] | None = None,
           suite: Sequence[Canary] = SUITE,
@@ -187,9 +182,9 @@ def check(reference_path: str = REFERENCE, update: bool = False, store_dir: str 
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(store_dir or tmp)
         now = summarize(run_suite(requests(suite, extra=extra), store, log=log))
+    for c in suite:  # what these numbers were measured with, stored beside the reference's
+        now[c.key]["canary"] = c.definition
     if update:
-        for c in suite:
-            now[c.key]["canary"] = c.definition
         write_json_atomic(reference_path, {
             "about": "ildbench canary reference: normalized final scores per (method, task) "
                      "over seeds; written by `ildbench check --update`",
@@ -197,6 +192,5 @@ def check(reference_path: str = REFERENCE, update: bool = False, store_dir: str 
         return True, f"reference written: {reference_path}\n" + json.dumps(now, indent=1)
     ref = load_reference(reference_path)
     verdicts = compare({k: v for k, v in ref.items() if k in {c.key for c in suite}}, now)
-    verdicts = [_same_definition(v, ref.get(v.key), suite) for v in verdicts]
     passed = all(v.passed for v in verdicts)
     return passed, render(verdicts) + f"\n\ncanary gate: {'PASS' if passed else 'FAIL'}"

@@ -23,6 +23,9 @@ def test_compare_tolerances_hand_values():
     v = {x.key: x for x in check.compare({"a/x": _ref(0.9)}, {"a/x": _ref(1.0),
                                                                "n/x": _ref(0.1)})}
     assert v["a/x"].passed and v["n/x"].passed and "no reference yet" in v["n/x"].why
+    v = check.compare({"a/x": {**_ref(0.9), "canary": {"env_steps": 8}}},
+                      {"a/x": {**_ref(0.95), "canary": {"env_steps": 4}}})
+    assert not v[0].passed and "canary changed since its reference" in v[0].why
     v = check.compare({"a/x": _ref(0.9)}, {})
     assert not v[0].passed and "missing" in v[0].why
     table = check.render(check.compare(ref, now))
