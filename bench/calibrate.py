@@ -89,6 +89,7 @@ def dynamics_effect(task, p: Perturbation, episodes: int = 4, seed: int = 0) -> 
     import jax.numpy as jnp
 
     from bench.perturb import perturbed_task
+    from tasks.core import open_loop
 
     def states(t):
         env = t.env
@@ -97,11 +98,7 @@ def dynamics_effect(task, p: Perturbation, episodes: int = 4, seed: int = 0) -> 
             k_reset, k_act = jax.random.split(key)
             acts = jax.random.uniform(k_act, (t.episode_length, t.action_size), minval=-1,
                                       maxval=1)
-
-            def body(s, a):
-                s = env.step(s, a)
-                return s, t.matched_state(s)
-            return jax.lax.scan(body, env.reset(k_reset), acts)[1]
+            return open_loop(env.step, env.reset(k_reset), acts, t.matched_state)[1]
         return jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(seed), episodes))
 
     base = states(task)

@@ -339,14 +339,19 @@ def _add_run_options(p, budget_default=None):
                    help="run cells in this process (default: a fresh child process per cell)")
 
 
-_OUT_HELP = ("where tables and plots go (default: the store's parent when the store is a "
-             "'.../runs' folder, e.g. results/grid for results/grid/runs; else results)")
+_OUT_HELP = ("where tables and plots go (default: X for the store X/runs, e.g. results/grid for "
+             "results/grid/runs; results for the default store 'runs'; else the store's "
+             "name + '_report', e.g. results/abc_report for results/abc)")
 
 
 def default_out(store: str) -> str:
-    """Tables of the store `X/runs` go to X, so a side sweep never overwrites results/'s."""
+    """Tables of the store `X/runs` go to X and those of the default store `runs` to results;
+    any other store S gets its own `S_report`, so a side sweep never writes over (or litters)
+    results/'s tables."""
     parent, base = os.path.split(os.path.normpath(store))
-    return parent if base == "runs" and parent else "results"
+    if base == "runs":
+        return parent or "results"
+    return os.path.join(parent, base + "_report")
 
 
 def build_parser():

@@ -41,7 +41,7 @@ from bench.plots import save_figure  # noqa: E402
 from bench.report import write_table  # noqa: E402
 from bench.store import Store  # noqa: E402
 from tasks import TASKS, get_spec, make_task  # noqa: E402
-from tasks.core import Task, task_with_backend  # noqa: E402
+from tasks.core import Task, open_loop, task_with_backend  # noqa: E402
 
 BACKENDS = ("generalized", "positional", "spring")
 REFERENCE_BACKEND = "generalized"
@@ -73,11 +73,7 @@ def open_loop_positions(task: Task, actions, keys) -> np.ndarray:
 
     def one(acts, key):
         s = task.env.reset(key)
-
-        def body(s, a):
-            s = task.env.step(s, a)
-            return s, task.matched_state(s)[:3 * nb]
-        _, pos = jax.lax.scan(body, s, acts)
+        pos = open_loop(task.env.step, s, acts, lambda s: task.matched_state(s)[:3 * nb])[1]
         return jnp.concatenate([task.matched_state(s)[None, :3 * nb], pos])
     pos = jax.jit(jax.vmap(one))(actions, keys)
     return np.asarray(pos).reshape(actions.shape[0], actions.shape[1] + 1, nb, 3)
@@ -130,16 +126,13 @@ def cloth_substeps(substeps=CLOTH_SUBSTEPS, batch: int = 10, repeats: int = 2,
         env = ClothHang(dt=0.1 / n, substeps=n, check_stability=False)
 
         def replay(a, env=env):
-            s = env.reset(jax.random.PRNGKey(0))
-            def body(s, a):
-                s = env.step(s, a)
-                return s, (s.pipeline_state["x"], s.reward)
-            return jax.lax.scan(body, s, a)[1]
+            return open_loop(env.step, env.reset(jax.random.PRNGKey(0)), a,
+                             lambda s: (s.pipeline_state["x"], s.reward))[1]
 
         def batch_loss(a, env=env):
             s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
-            s = jax.lax.scan(lambda s, a: (jax.vmap(env.step)(s, jnp.broadcast_to(
-                a, (batch, 8))), None), s, a)[0]
+            s = open_loop(lambda s, a: jax.vmap(env.step)(s, jnp.broadcast_to(a, (batch, 8))),
+                          s, a)[0]
             return jnp.mean(s.obs ** 2)
 
         x, rew = (np.asarray(v) for v in jax.jit(replay)(acts))

@@ -91,6 +91,16 @@ def _build_env(spec: TaskSpec, test_noise: float = 0.0) -> Env:
     raise ValueError(f"task {spec.name!r}: cannot build env {spec.env!r}")
 
 
+def open_loop(step, state, actions, emit=lambda s: None):
+    """Step `state` through time-major `actions` (H, ...) with no policy in the loop (the
+    backend probes, trajectory optimization, replays): `jax.lax.scan` of `step`. Returns
+    (final state, `emit` of each of the H post-step states, stacked)."""
+    def body(s, a):
+        s = step(s, a)
+        return s, emit(s)
+    return jax.lax.scan(body, state, actions)
+
+
 def env_obs_size(env: Env) -> int:
     """Observation width of a (possibly wrapped) env. brax's env.observation_size runs
     reset() op by op (seconds for humanoid); an abstract trace gives the same shape in

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from tasks.core import Task, make_task
+from tasks.core import Task, make_task, open_loop
 from tasks.demo import FORMAT_VERSION, Demo, library_versions, save_demo
 from tasks.registry import DATA_DIR
 
@@ -170,10 +170,8 @@ def train_trajopt_expert(task_name: str, seed: int = 0, log=_print,
     t0 = time.perf_counter()
 
     def episode_return(u, key):  # u: (T, A) unsquashed torques
-        def body(s, a):
-            s = env.step(s, jnp.tanh(a))
-            return s, s.reward
-        return jax.lax.scan(body, env.reset(key), u)[1].sum()
+        return open_loop(lambda s, a: env.step(s, jnp.tanh(a)), env.reset(key), u,
+                         lambda s: s.reward)[1].sum()
 
     k_phase, k_fit, k_select = jax.random.split(jax.random.PRNGKey(seed), 3)
     t = jnp.arange(T, dtype=jnp.float32) * float(env.dt)

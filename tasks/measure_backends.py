@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks import TASKS, get_spec
-from tasks.core import Task, task_with_backend
+from tasks.core import Task, open_loop, task_with_backend
 
 CANDIDATES = ("generalized", "positional", "spring")
 FIELDS = ["task", "backend", "batch", "horizon", "fwd_steps_per_s", "grad_steps_per_s",
@@ -31,14 +31,7 @@ def _rollout_fn(task: Task, horizon: int):
     env = task.env
 
     def rollout(actions, key):  # actions (H, act)
-        state = env.reset(key)
-
-        def body(s, a):
-            s = env.step(s, a)
-            return s, task.matched_state(s)
-
-        _, states = jax.lax.scan(body, state, actions)
-        return states
+        return open_loop(env.step, env.reset(key), actions, task.matched_state)[1]
 
     return rollout
 

@@ -83,12 +83,14 @@ def test_run_then_leaderboard(capsys, tmp_path):
     assert code == 0 and f"written: {tmp_path / 'leaderboard.md'}" in out
 
 
-def test_default_report_folder_is_the_stores_parent():
+def test_default_report_folder_follows_the_store():
     from bench.cli import default_out
     assert default_out("results/grid/runs") == "results/grid"
     assert default_out("results/grid/runs/") == "results/grid"
     assert default_out("runs") == "results"
-    assert default_out("/tmp/mystore") == "results"
+    assert default_out("/tmp/mystore") == "/tmp/mystore_report"
+    assert default_out("results/tradeoff/budget_runs/") == "results/tradeoff/budget_runs_report"
+    assert default_out("mystore") == "mystore_report"
 
 
 def test_listing_commands(capsys):

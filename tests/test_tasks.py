@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tasks import TASKS, make_task
-from tasks.core import Canonical, brax_matched_state, strong
+from tasks.core import Canonical, brax_matched_state, open_loop, strong
 
 
 def test_pointmass_dynamics_by_hand():
@@ -20,6 +20,24 @@ def test_pointmass_dynamics_by_hand():
     s2 = env.step(s1, jnp.array([-3.0]))
     np.testing.assert_allclose(s2.obs, [1.0025, -0.05], atol=1e-7)
     np.testing.assert_allclose(s2.reward, -1.0025, atol=1e-7)
+
+
+def test_open_loop_is_the_step_by_step_loop():
+    env = make_task("pointmass").env.unwrapped
+    s = env.reset(jax.random.PRNGKey(0))
+    s = s.replace(pipeline_state=jnp.array([1.0, 0.0]), obs=jnp.array([1.0, 0.0]))
+    final, (obs, rew) = open_loop(env.step, s, jnp.array([[0.5], [-3.0]]),
+                                  lambda s: (s.obs, s.reward))
+    # the two hand-computed steps of test_pointmass_dynamics_by_hand, stacked
+    np.testing.assert_allclose(obs, [[1.0, 0.05], [1.0025, -0.05]], atol=1e-7)
+    np.testing.assert_allclose(rew, [-1.0, -1.0025], atol=1e-7)
+    np.testing.assert_allclose(final.obs, obs[-1])
+    acts = jax.random.uniform(jax.random.PRNGKey(3), (25, 1), minval=-1, maxval=1)
+    final, none = open_loop(env.step, s, acts)
+    assert none is None
+    for a in acts:
+        s = env.step(s, a)
+    np.testing.assert_allclose(final.obs, s.obs, rtol=1e-6, atol=1e-7)
 
 
 def test_pointmass_gradient_matches_finite_differences():

@@ -35,6 +35,7 @@ from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
 from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
 from tasks import make_task
+from tasks.core import open_loop
 
 
 def _time(fn, args, repeats):
@@ -74,13 +75,9 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     constant reward of 1 per step), so XLA drops its backward pass and its 'training/sps'
     times a forward rollout: no comparison for ILD's update."""
     s0 = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
-    step = jax.vmap(task.env.step)
 
     def total(actions):
-        def body(s, a):
-            s = step(s, a)
-            return s, s.reward
-        return jnp.sum(jax.lax.scan(body, s0, actions)[1])
+        return jnp.sum(open_loop(jax.vmap(task.env.step), s0, actions, lambda s: s.reward)[1])
 
     g = jax.grad(total)(jnp.full((steps, batch, task.action_size), 0.1))
     return float(jnp.linalg.norm(g))
