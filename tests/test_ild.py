@@ -290,6 +290,22 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
                                                               rel=0.02)
     assert by["forward"]["env_steps_per_s"] == pytest.approx(4 * 128 / by["forward"]["seconds"],
                                                              rel=0.02)
+    # working memory: the update keeps the backward pass's residuals, which a forward
+    # rollout does not and rematerialization recomputes instead (5.5 MiB vs 0.03 here)
+    assert by["ild"]["temp_mib"] > by["forward"]["temp_mib"]
+    assert by["ild_remat"]["temp_mib"] < 0.1 * by["ild"]["temp_mib"]
+    assert r["chamfer_share_of_update_memory"] == pytest.approx(
+        by["chamfer"]["temp_mib"] / by["ild"]["temp_mib"], rel=0.02, abs=2e-3)
+
+
+def test_benchmark_memory_is_xla_working_memory():
+    """temp_bytes is the compiled function's scratch: an (N, N) matmul result that is then
+    summed must be materialized once (N * N float32 = 360,000 bytes for N = 300), while its
+    (300, 200) argument is not counted."""
+    from methods.ild.benchmark import temp_bytes
+    x = jnp.ones((300, 200))
+    t = temp_bytes(jax.jit(lambda x: (x @ x.T).sum()).lower(x).compile())
+    assert 300 * 300 * 4 <= t < 300 * 300 * 4 + 300 * 200 * 4
 
 
 def test_benchmark_leaves_apg_out_where_the_reward_has_no_gradient():

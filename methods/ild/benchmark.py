@@ -10,15 +10,19 @@ rows:
   ild_no_gn    the same without per-step gradient normalization
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
+               (its time and working memory as shares of an update's: issue 4 asks that
+               it not dominate either at the paper's batch, B = 360)
   step_forward, step_vjp      ONE physics step of B envs, forward / forward + backward
   policy_forward, policy_vjp  one policy sample for B envs, forward / forward + backward
                (their env-steps/s count B steps per call)
   apg          brax's own APG trainer (brax.training.agents.apg), horizon 128, same network;
-               its steady-state 'training/sps' (a later epoch, compile excluded); left
+               its steady-state 'training/sps' (its second epoch, `--repeats` updates in
+               one jitted scan; the first epoch compiles); left
                out where the task's reward has no gradient (inverted_pendulum's constant
                reward: APG's backward pass is then empty and it would time a forward rollout)
 Each jitted function is compiled first (compile seconds reported) and then timed over
-`--repeats` calls. Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
+`--repeats` calls; each row also reports XLA's working memory for one call (`temp_mib`,
+the compiled function's temporaries: arguments and outputs excluded). Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
 Goals are random states of the task's matched-state size: speed does not depend on them.
 """
 from __future__ import annotations
@@ -38,6 +42,12 @@ from tasks import make_task
 from tasks.core import open_loop
 
 
+def temp_bytes(compiled) -> int:
+    """XLA's working memory for one call of a compiled function (its temporaries: for an
+    update, the residuals the backward pass reads), arguments and outputs excluded."""
+    return int(compiled.memory_analysis().temp_size_in_bytes)
+
+
 def _time(fn, args, repeats):
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
@@ -46,10 +56,10 @@ def _time(fn, args, repeats):
     t0 = time.perf_counter()
     for _ in range(repeats):
         jax.block_until_ready(compiled(*args))
-    return (time.perf_counter() - t0) / repeats, compile_s
+    return (time.perf_counter() - t0) / repeats, compile_s, temp_bytes(compiled)
 
 
-def _apg_sps(task, batch, hidden):
+def _apg_sps(task, batch, hidden, repeats):
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as apg
     from flax import linen
@@ -61,12 +71,15 @@ def _apg_sps(task, batch, hidden):
                                               preprocess_observations_fn, hidden, linen.swish,
                                               layer_norm=False)
 
-    apg.train(environment=task.env, episode_length=task.episode_length, policy_updates=3,
-              horizon_length=task.episode_length, num_envs=batch, num_evals=4,
+    # Two epochs of `repeats` updates each (brax times an epoch as one jitted scan): the
+    # first compiles, the second is timed over `repeats` updates, as ILD's rows are.
+    apg.train(environment=task.env, episode_length=task.episode_length,
+              policy_updates=2 * repeats, horizon_length=task.episode_length,
+              num_envs=batch, num_evals=3,
               num_eval_envs=batch, network_factory=factory,
               progress_fn=lambda it, m: sps.append(float(m["training/sps"]))
               if "training/sps" in m else None)
-    return sps[-1]  # the last epoch: compiled already
+    return sps[-1]  # the second epoch: compiled already
 
 
 def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
@@ -96,62 +109,65 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
     steps = batch * T
     rows = []
 
-    def row(name, sec, compile_s, n=steps):
+    def row(name, sec, compile_s, temp, n=steps):
         rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
                      "what": name, "seconds": float(f"{sec:.4g}"),
                      "env_steps_per_s": round(n / sec, 1),
-                     "compile_s": round(compile_s, 1)})
+                     "compile_s": round(compile_s, 1),
+                     "temp_mib": round(temp / 2**20, 3) if temp is not None else None})
         print(rows[-1], flush=True)
 
     loss_fn = make_rollout_loss(task, policy, goals, norm, base)
-    sec, c = _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats)
-    row("forward", sec, c)
+    sec, c, m = _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats)
+    row("forward", sec, c, m)
     for name, cfg in (("ild", base), ("ild_no_gn", dataclasses.replace(
             base, grad_normalization=False)), ("ild_remat", dataclasses.replace(base, remat=True))):
         update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
         state = initial_state(params, opt, k[3], cfg)
-        sec, c = _time(lambda s: update(s, None)[0], (state,), repeats)
-        row(name, sec, c)
+        sec, c, m = _time(lambda s: update(s, None)[0], (state,), repeats)
+        row(name, sec, c, m)
     # Where an update's time goes, per control step of B envs: the physics step and the
     # policy sample, each forward and as a VJP (forward + backward with a cotangent), so the
     # backend's own reverse-mode cost shows beside ILD's.
     s0 = jax.vmap(task.env.reset)(init_keys)
     a0 = jnp.zeros((batch, task.action_size))
     step = jax.vmap(task.env.step)
-    sec, c = _time(step, (s0, a0), 5 * repeats)
-    row("step_forward", sec, c, batch)
+    sec, c, m = _time(step, (s0, a0), 5 * repeats)
+    row("step_forward", sec, c, m, batch)
 
     def step_vjp(s, a):
         out, pull = jax.vjp(step, s, a)
         return pull(jax.tree.map(jnp.ones_like, out))
-    sec, c = _time(step_vjp, (s0, a0), 5 * repeats)
-    row("step_vjp", sec, c, batch)
+    sec, c, m = _time(step_vjp, (s0, a0), 5 * repeats)
+    row("step_vjp", sec, c, m, batch)
     sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
     pkeys = jax.random.split(k[3], batch)
-    sec, c = _time(sample, (params, s0.obs, pkeys), 5 * repeats)
-    row("policy_forward", sec, c, batch)
+    sec, c, m = _time(sample, (params, s0.obs, pkeys), 5 * repeats)
+    row("policy_forward", sec, c, m, batch)
 
     def policy_vjp(p, o):
         out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
         return pull(jnp.ones_like(out))
-    sec, c = _time(policy_vjp, (params, s0.obs), 5 * repeats)
-    row("policy_vjp", sec, c, batch)
+    sec, c, m = _time(policy_vjp, (params, s0.obs), 5 * repeats)
+    row("policy_vjp", sec, c, m, batch)
     x = jax.random.normal(k[3], (batch, T, task.state_size))
     cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
         lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
-    sec, c = _time(cham, (x,), repeats)
-    row("chamfer", sec, c)
+    sec, c, m = _time(cham, (x,), repeats)
+    row("chamfer", sec, c, m)
     if with_apg and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
         with_apg = False
     if with_apg:
         t0 = time.perf_counter()
-        sps = _apg_sps(task, batch, base.hidden)
-        row("apg", steps / sps, time.perf_counter() - t0)
+        sps = _apg_sps(task, batch, base.hidden, repeats)
+        row("apg", steps / sps, time.perf_counter() - t0, None)
     by = {r["what"]: r for r in rows}
     ratios = {"update_over_forward": by["ild"]["seconds"] / by["forward"]["seconds"],
               "chamfer_share_of_update": by["chamfer"]["seconds"] / by["ild"]["seconds"],
+              "chamfer_share_of_update_memory": (by["chamfer"]["temp_mib"]
+                                                 / by["ild"]["temp_mib"]),
               "step_vjp_over_forward": (by["step_vjp"]["seconds"]
                                         / by["step_forward"]["seconds"]),
               "policy_vjp_over_forward": (by["policy_vjp"]["seconds"]
