@@ -222,6 +222,32 @@ def test_remat_computes_the_same_loss_and_gradient():
     assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
 
 
+def test_chunk_runs_the_same_updates_as_one_per_call():
+    """chunk=K (K updates in one jitted lax.scan, as the speed benchmark's ild_chunkK rows
+    and brax's APG epoch run them) is a call structure, not a different method: 3 updates
+    scanned in one call give the parameters 3 separate calls give, to float32 round-off."""
+    from methods.ild.train import initial_state, make_update
+    task = make_task("pointmass")
+    demo = load_demo(task.spec.demo_path, task)
+    ds = jnp.asarray(demo.states[:1, 1:])
+    norm = StateNorm(jnp.zeros(ds.shape[-1]), jnp.ones(ds.shape[-1]))
+    cfg = _cfg()
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, cfg.hidden)
+    params = policy.init(jax.random.PRNGKey(0), ObsNorm.fit(jnp.asarray(demo.obs[0])))
+    update, opt, _ = make_update(task, policy, norm(ds), norm, cfg, jax.random.PRNGKey(3))
+    s0 = initial_state(params, opt, jax.random.PRNGKey(4), cfg)
+    one = jax.jit(lambda s: update(s, None)[0])
+    looped = one(one(one(s0)))
+    scanned, m = jax.jit(lambda s: jax.lax.scan(update, s, None, length=3))(s0)
+    assert int(scanned.step) == int(looped.step) == 3
+    assert m["train/loss"].shape == (3,)
+    moved = 0.0
+    for a, b, c in zip(*(jax.tree_util.tree_leaves(x.params) for x in (looped, scanned, s0))):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+        moved += float(jnp.abs(a - c).sum())
+    assert moved > 1e-3  # the updates did move the parameters
+
+
 def test_truncation_cuts_the_gradient_path():
     """With truncation 1, the final state depends on earlier actions only through the
     stop_gradient'ed state: changing the window changes the gradient."""
@@ -277,11 +303,17 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
     """The benchmark's rows on pointmass (no APG: brax's trainer wants a brax env): the
     per-step decomposition rows exist and the ratios are the rows' own quotients."""
     from methods.ild.benchmark import run
-    rows = run("pointmass", batch=4, repeats=1, with_apg=False)
+    rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=3)
     by = {r["what"]: r for r in rows}
-    assert {"forward", "ild", "ild_no_gn", "ild_remat", "chamfer", "step_forward",
-            "step_vjp", "policy_forward", "policy_vjp"} <= set(by)
+    assert {"forward", "ild", "ild_no_gn", "ild_remat", "ild_chunk3", "ild_remat_chunk3",
+            "chamfer", "step_forward", "step_vjp", "policy_forward", "policy_vjp"} <= set(by)
     r = rows[0]
+    # chunk rows: 3 updates per call, seconds and env-steps/s per update
+    assert by["ild_chunk3"]["updates_per_call"] == 3 and by["ild"]["updates_per_call"] == 1
+    assert by["ild_chunk3"]["env_steps_per_s"] == pytest.approx(
+        4 * 128 / by["ild_chunk3"]["seconds"], rel=0.02)
+    assert r["chunk_speedup"] == pytest.approx(
+        by["ild"]["seconds"] / by["ild_chunk3"]["seconds"], rel=0.02, abs=2e-3)
     assert r["update_over_forward"] == pytest.approx(
         by["ild"]["seconds"] / by["forward"]["seconds"], rel=0.02, abs=2e-3)
     assert r["step_vjp_over_forward"] == pytest.approx(
@@ -306,6 +338,20 @@ def test_benchmark_memory_is_xla_working_memory():
     x = jnp.ones((300, 200))
     t = temp_bytes(jax.jit(lambda x: (x @ x.T).sum()).lower(x).compile())
     assert 300 * 300 * 4 <= t < 300 * 300 * 4 + 300 * 200 * 4
+
+
+def test_benchmark_counts_the_page_faults_of_a_calls_working_memory():
+    """XLA's CPU runtime maps a call's working memory afresh on every call: a (4096, 16) x
+    (16, 4096) float32 product that is then summed needs a 64 MiB scratch result, and each
+    timed call faults in its 16,384 pages of 4 KiB (64 MiB). This is the per-call cost that
+    K updates in one scan pay once (README, ILD speed); if a jaxlib upgrade starts reusing
+    the buffer, this fails and that finding needs re-measuring."""
+    from methods.ild.benchmark import _time
+    x = jnp.ones((4096, 16))
+    t = _time(lambda x: (x @ x.T).sum(), (x,), 3)
+    assert 64 * 2**20 <= t.temp < 65 * 2**20  # the product, plus 64 KiB of XLA's own
+    assert 63 <= t.fault_mib <= 72  # measured 65.4 MiB per call
+    assert t.sys_s >= 0 and t.seconds > 0
 
 
 def test_benchmark_leaves_apg_out_where_the_reward_has_no_gradient():

@@ -9,6 +9,9 @@ rows:
                per-step gradient normalization and truncation 10, clip, Adam)
   ild_no_gn    the same without per-step gradient normalization
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
+  ild_chunkK, ild_remat_chunkK   K (`--chunk`) updates in one jitted lax.scan, as the
+               trainer runs them with `--set chunk=K` and as brax's APG runs an epoch;
+               seconds and env-steps/s per update
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
                (its time and working memory as shares of an update's: issue 4 asks that
                it not dominate either at the paper's batch, B = 360)
@@ -22,13 +25,18 @@ rows:
                reward: APG's backward pass is then empty and it would time a forward rollout)
 Each jitted function is compiled first (compile seconds reported) and then timed over
 `--repeats` calls; each row also reports XLA's working memory for one call (`temp_mib`,
-the compiled function's temporaries: arguments and outputs excluded). Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
+the compiled function's temporaries: arguments and outputs excluded) and what the operating
+system charged per call: `fault_mib` (minor page faults x 4 KiB) and `sys_s` (kernel seconds).
+XLA's CPU runtime maps a call's working memory afresh each call and unmaps it after, so an
+update that stores the backward pass's residuals pays a page fault per 4 KiB of them on every
+call; K updates per call pay it once. Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
 Goals are random states of the task's matched-state size: speed does not depend on them.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import resource
 import time
 
 import jax
@@ -48,15 +56,29 @@ def temp_bytes(compiled) -> int:
     return int(compiled.memory_analysis().temp_size_in_bytes)
 
 
-def _time(fn, args, repeats):
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    seconds: float       # per call
+    compile_s: float
+    temp: int            # XLA working memory of one call, bytes
+    fault_mib: float     # minor page faults per call x 4 KiB (the kernel zero-fills each)
+    sys_s: float         # kernel seconds per call
+
+
+def _time(fn, args, repeats) -> Timing:
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(*args))
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     for _ in range(repeats):
         jax.block_until_ready(compiled(*args))
-    return (time.perf_counter() - t0) / repeats, compile_s, temp_bytes(compiled)
+    sec = (time.perf_counter() - t0) / repeats
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return Timing(sec, compile_s, temp_bytes(compiled),
+                  (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 2**20 / repeats,
+                  (r1.ru_stime - r0.ru_stime) / repeats)
 
 
 def _apg_sps(task, batch, hidden, repeats):
@@ -96,7 +118,8 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     return float(jnp.linalg.norm(g))
 
 
-def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list[dict]:
+def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
+        chunk: int = 4) -> list[dict]:
     task = make_task(task_name)
     T = task.episode_length
     base = ILDConfig(num_envs=batch)
@@ -109,52 +132,61 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
     steps = batch * T
     rows = []
 
-    def row(name, sec, compile_s, temp, n=steps):
+    def row(name, t: Timing | None, n=steps, per_call=1, sec=None, compile_s=None):
+        """One row; `per_call` updates per timed call: seconds and env-steps/s per update,
+        memory, faults and kernel time per call."""
+        sec = t.seconds / per_call if t is not None else sec
         rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
                      "what": name, "seconds": float(f"{sec:.4g}"),
                      "env_steps_per_s": round(n / sec, 1),
-                     "compile_s": round(compile_s, 1),
-                     "temp_mib": round(temp / 2**20, 3) if temp is not None else None})
+                     "compile_s": round(t.compile_s if t is not None else compile_s, 1),
+                     "updates_per_call": per_call,
+                     "temp_mib": round(t.temp / 2**20, 3) if t is not None else None,
+                     "fault_mib": round(t.fault_mib, 1) if t is not None else None,
+                     "sys_s": float(f"{t.sys_s:.3g}") if t is not None else None})
         print(rows[-1], flush=True)
 
     loss_fn = make_rollout_loss(task, policy, goals, norm, base)
-    sec, c, m = _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats)
-    row("forward", sec, c, m)
-    for name, cfg in (("ild", base), ("ild_no_gn", dataclasses.replace(
-            base, grad_normalization=False)), ("ild_remat", dataclasses.replace(base, remat=True))):
+    row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
+    remat = dataclasses.replace(base, remat=True)
+    for name, cfg, n in (("ild", base, 1),
+                         ("ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
+                         ("ild_remat", remat, 1), (f"ild_chunk{chunk}", base, chunk),
+                         (f"ild_remat_chunk{chunk}", remat, chunk)):
+        if n > 1 and chunk == 1:
+            continue
         update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
         state = initial_state(params, opt, k[3], cfg)
-        sec, c, m = _time(lambda s: update(s, None)[0], (state,), repeats)
-        row(name, sec, c, m)
+        if n == 1:
+            t = _time(lambda s: update(s, None)[0], (state,), repeats)
+        else:  # the trainer's chunk: n updates in one jitted scan
+            t = _time(lambda s: jax.lax.scan(update, s, None, length=n)[0], (state,),
+                      -(-repeats // n))  # at least `repeats` updates
+        row(name, t, per_call=n)
     # Where an update's time goes, per control step of B envs: the physics step and the
     # policy sample, each forward and as a VJP (forward + backward with a cotangent), so the
     # backend's own reverse-mode cost shows beside ILD's.
     s0 = jax.vmap(task.env.reset)(init_keys)
     a0 = jnp.zeros((batch, task.action_size))
     step = jax.vmap(task.env.step)
-    sec, c, m = _time(step, (s0, a0), 5 * repeats)
-    row("step_forward", sec, c, m, batch)
+    row("step_forward", _time(step, (s0, a0), 5 * repeats), batch)
 
     def step_vjp(s, a):
         out, pull = jax.vjp(step, s, a)
         return pull(jax.tree.map(jnp.ones_like, out))
-    sec, c, m = _time(step_vjp, (s0, a0), 5 * repeats)
-    row("step_vjp", sec, c, m, batch)
+    row("step_vjp", _time(step_vjp, (s0, a0), 5 * repeats), batch)
     sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
     pkeys = jax.random.split(k[3], batch)
-    sec, c, m = _time(sample, (params, s0.obs, pkeys), 5 * repeats)
-    row("policy_forward", sec, c, m, batch)
+    row("policy_forward", _time(sample, (params, s0.obs, pkeys), 5 * repeats), batch)
 
     def policy_vjp(p, o):
         out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
         return pull(jnp.ones_like(out))
-    sec, c, m = _time(policy_vjp, (params, s0.obs), 5 * repeats)
-    row("policy_vjp", sec, c, m, batch)
+    row("policy_vjp", _time(policy_vjp, (params, s0.obs), 5 * repeats), batch)
     x = jax.random.normal(k[3], (batch, T, task.state_size))
     cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
         lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
-    sec, c, m = _time(cham, (x,), repeats)
-    row("chamfer", sec, c, m)
+    row("chamfer", _time(cham, (x,), repeats))
     if with_apg and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
@@ -162,7 +194,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
     if with_apg:
         t0 = time.perf_counter()
         sps = _apg_sps(task, batch, base.hidden, repeats)
-        row("apg", steps / sps, time.perf_counter() - t0, None)
+        row("apg", None, per_call=repeats, sec=steps / sps, compile_s=time.perf_counter() - t0)
     by = {r["what"]: r for r in rows}
     ratios = {"update_over_forward": by["ild"]["seconds"] / by["forward"]["seconds"],
               "chamfer_share_of_update": by["chamfer"]["seconds"] / by["ild"]["seconds"],
@@ -172,9 +204,15 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True) -> list
                                         / by["step_forward"]["seconds"]),
               "policy_vjp_over_forward": (by["policy_vjp"]["seconds"]
                                           / by["policy_forward"]["seconds"])}
-    if "apg" in by:
-        ratios["ild_over_apg_steps_per_s"] = (by["ild"]["env_steps_per_s"] /
-                                              by["apg"]["env_steps_per_s"])
+    if chunk > 1:
+        ratios["chunk_speedup"] = by["ild"]["seconds"] / by[f"ild_chunk{chunk}"]["seconds"]
+        ratios["remat_chunk_speedup"] = (by["ild_remat"]["seconds"]
+                                         / by[f"ild_remat_chunk{chunk}"]["seconds"])
+    if "apg" in by:  # env-steps/s of each ILD variant over APG's
+        for name in ("ild", "ild_remat", f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}"):
+            if name in by:
+                ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
+                                              / by["apg"]["env_steps_per_s"])
     print({k: round(v, 3) for k, v in ratios.items()}, flush=True)
     for r in rows:
         r.update({k: round(v, 3) for k, v in ratios.items()})
@@ -186,10 +224,15 @@ def main(argv=None):
     p.add_argument("--task", default="hopper")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--chunk", type=int, default=4,
+                   help="updates per call of the ild_chunkK rows (1: leave them out)")
     p.add_argument("--no-apg", action="store_true")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
-    rows = run(a.task, a.batch, a.repeats, not a.no_apg)
+    if a.chunk < 1 or a.repeats < 1 or a.batch < 1:
+        p.error(f"--chunk, --repeats and --batch must be >= 1, got {a.chunk}, {a.repeats}, "
+                f"{a.batch}")
+    rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk)
     if a.out:
         from bench.report import append_csv
         append_csv(rows, a.out)
