@@ -221,6 +221,13 @@ class RunContext:
             parts.append(env_steps / b.env_steps)
         return min(max(parts), 1.0)
 
+    def remaining(self, env_steps: int) -> tuple[float | None, int | None]:
+        """(seconds, env steps) left in the budget; None where the budget has no such limit.
+        For methods that run several updates per call and must not overrun the budget."""
+        b = self.budget
+        return (None if b.seconds is None else b.seconds - self.clock.elapsed(),
+                None if b.env_steps is None else b.env_steps - int(env_steps))
+
     def should_stop(self, env_steps: int) -> bool:
         """True once the budget is spent: the method must then return its final policy."""
         b = self.budget

@@ -225,8 +225,10 @@ def test_remat_computes_the_same_loss_and_gradient():
 def test_chunk_runs_the_same_updates_as_one_per_call():
     """chunk=K (K updates in one jitted lax.scan, as the speed benchmark's ild_chunkK rows
     and brax's APG epoch run them) is a call structure, not a different method: 3 updates
-    scanned in one call give the parameters 3 separate calls give, to float32 round-off."""
-    from methods.ild.train import initial_state, make_update
+    scanned in one call give the parameters 3 separate calls give, to float32 round-off;
+    so does the trainer's chunk of 4 told that only 3 are left in the budget (and its
+    metrics are their mean)."""
+    from methods.ild.train import initial_state, make_chunk, make_update
     task = make_task("pointmass")
     demo = load_demo(task.spec.demo_path, task)
     ds = jnp.asarray(demo.states[:1, 1:])
@@ -246,6 +248,33 @@ def test_chunk_runs_the_same_updates_as_one_per_call():
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
         moved += float(jnp.abs(a - c).sum())
     assert moved > 1e-3  # the updates did move the parameters
+    part, m4 = make_chunk(update, 4)(s0, jnp.int32(3))
+    assert int(part.step) == 3
+    np.testing.assert_allclose(m4["train/loss"], np.mean(m["train/loss"]), rtol=1e-5)
+    for a, b in zip(*(jax.tree_util.tree_leaves(x) for x in (looped, part))):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_updates_this_call_meets_the_budget_inside_a_chunk():
+    """Hand-computed: chunk 4, 4096 env steps per update."""
+    from methods.ild.train import updates_this_call
+    cfg = _cfg(chunk=4, updates=10)
+    n = lambda done=0, s=None, steps=None, u=None: updates_this_call(cfg, done, 4096, s, steps, u)
+    assert n() == 4                          # no limit but the chunk
+    assert n(done=8) == 2                    # 10 updates in all
+    assert n(steps=3 * 4096) == 3            # env-step budget: exact
+    assert n(steps=2 * 4096 + 1) == 3        # a partial update left still runs (as chunk 1)
+    assert n(s=10.0) == 4                    # no time per update measured yet (compiling)
+    assert n(s=2.5, u=1.0) == 3              # 2.5 s left at 1 s per update: overrun < 1 update
+    assert n(s=-1.0, u=1.0) == 1             # never 0: the caller checked should_stop first
+
+
+def test_chunked_ild_stops_at_an_env_step_budget_inside_a_chunk(store):
+    """15 updates' env steps with chunk 4: calls of 4, 4, 4, 3 updates; the record has
+    exactly the budget's steps and updates, as chunk 1 would."""
+    rec, _ = execute(prepare(_ild(0, bc_updates=0, chunk=4)), store, log=lambda s: None)
+    assert rec["status"] == "ok" and rec["env_steps"] == 32 * 128 * 15
+    assert rec["train_metrics"]["train/updates"] == 15
 
 
 def test_truncation_cuts_the_gradient_path():

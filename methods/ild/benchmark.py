@@ -9,8 +9,8 @@ rows:
                per-step gradient normalization and truncation 10, clip, Adam)
   ild_no_gn    the same without per-step gradient normalization
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
-  ild_chunkK, ild_remat_chunkK   K (`--chunk`) updates in one jitted lax.scan, as the
-               trainer runs them with `--set chunk=K` and as brax's APG runs an epoch;
+  ild_chunkK, ild_remat_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
+               own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
                (its time and working memory as shares of an update's: issue 4 asks that
@@ -45,7 +45,8 @@ import jax.numpy as jnp
 from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
-from methods.ild.train import StateNorm, initial_state, make_rollout_loss, make_update
+from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
+                               make_update)
 from tasks import make_task
 from tasks.core import open_loop
 
@@ -159,9 +160,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         state = initial_state(params, opt, k[3], cfg)
         if n == 1:
             t = _time(lambda s: update(s, None)[0], (state,), repeats)
-        else:  # the trainer's chunk: n updates in one jitted scan
-            t = _time(lambda s: jax.lax.scan(update, s, None, length=n)[0], (state,),
-                      -(-repeats // n))  # at least `repeats` updates
+        else:  # the trainer's chunk: n updates in one jitted scan, all n active
+            t = _time(lambda s, a, c=make_chunk(update, n): c(s, a)[0],
+                      (state, jnp.int32(n)), -(-repeats // n))  # at least `repeats` updates
         row(name, t, per_call=n)
     # Where an update's time goes, per control step of B envs: the physics step and the
     # policy sample, each forward and as a VJP (forward + backward with a cotangent), so the

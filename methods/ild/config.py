@@ -75,7 +75,9 @@ class ILDConfig:
     """Rematerialize each step in the backward pass (jax.checkpoint): less memory, more
     compute; measured by `python -m methods.ild.benchmark`."""
     chunk: int = 1
-    """Updates per jitted call between reports and budget checks (1: metrics every update)."""
+    """Updates per jitted call between reports and budget checks (1: metrics every update).
+    K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update, README
+    ILD speed); each call runs only the updates the budget has left, so it never overruns it."""
     joint_limits: bool = True
     """False: the training rollouts run on a copy of the task without its joint-range
     constraints (`tasks.core.without_joint_limits`), a smooth surrogate where brax solves
@@ -141,8 +143,9 @@ TASK_OVERRIDES: dict[str, dict] = {
     # ant: rematerialize each step in the backward pass. The same gradient (each step's
     # forward is recomputed next to its backward, not approximated; tested), computed 1.34x
     # faster on one CPU core at B = 32 (2.215 -> 1.649 s per update, `python -m
-    # methods.ild.benchmark --task ant`, session 18): ant's per-step residuals are large, and
-    # re-reading them from 128 stacked steps costs more than recomputing. ILD is budget-bound
+    # methods.ild.benchmark --task ant`, session 18): ant's per-step residuals are large (811
+    # MiB per update), and XLA's CPU runtime maps that working memory afresh on every call,
+    # which the kernel zero-fills page by page (session 25); remat needs 3-24 MiB. ILD is budget-bound
     # on ant (0.20 / 0.40 / 0.49 at 1 / 2 / 3 minutes), and the speed is score there: 3-minute
     # cells, same session and load, 109-110 updates and 0.507 / 0.601 / 0.637 over seeds 0-2
     # with remat vs 82-88 updates and 0.496 / 0.502 / 0.564 without (README ILD section).

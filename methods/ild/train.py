@@ -152,6 +152,43 @@ def budget_lr(config: ILDConfig, spent: float) -> float:
     return config.learning_rate + f * (config.lr_end - config.learning_rate)
 
 
+def make_chunk(update, n: int):
+    """Up to `n` updates in one jitted call: chunk(state, active) -> (state, metrics averaged
+    over the updates run). Only min(active, n) updates run (a loop with that trip count), so
+    a budget or an update count that ends inside a chunk is met as one update per call
+    would meet it. n = 1 is the plain one-update call (metrics stacked over its one update)."""
+    if n == 1:
+        return jax.jit(lambda s, active: jax.lax.scan(update, s, None, length=1))
+
+    def run(s, active):
+        _, shapes = jax.eval_shape(update, s, None)
+        total = jax.tree.map(lambda x: jnp.zeros(x.shape, jnp.float32), shapes)
+
+        def body(_, carry):
+            s, total = carry
+            s, m = update(s, None)
+            return s, jax.tree.map(lambda t, x: t + x.astype(jnp.float32), total, m)
+
+        k = jnp.clip(active, 1, n)
+        s, total = jax.lax.fori_loop(0, k, body, (s, total))
+        return s, jax.tree.map(lambda x: x / k.astype(jnp.float32), total)
+
+    return jax.jit(run)
+
+
+def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: float | None,
+                      left_steps: int | None, update_s: float | None) -> int:
+    """How many of a chunk's updates to run: what is left of `updates`, of an env-step
+    budget (exact) and of a time budget (at the last call's seconds per update, rounded up:
+    a call overruns the time by at most one update, as one update per call does)."""
+    n = min(config.chunk, config.updates - done)
+    if left_steps is not None:
+        n = min(n, -(-left_steps // per_update))
+    if left_s is not None and update_s:
+        n = min(n, int(np.ceil(max(left_s, 0.0) / update_s)))
+    return max(n, 1)
+
+
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
     """Alg. 1 line 3: BC on (o_t, a_t) with its own Adam (same lr and clipping)."""
     opt = bc_optimizer(config.learning_rate, config.max_grad_norm)
@@ -186,23 +223,26 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
     # the physics the rollouts differentiate through (evaluation always uses `task`)
     rollout_task = task if config.joint_limits else without_joint_limits(task)
     update, opt, lr = make_update(rollout_task, policy, goals, norm, config, reset_key)
-    chunk = jax.jit(lambda s: jax.lax.scan(update, s, None, length=config.chunk))
+    chunk = make_chunk(update, config.chunk)
     state = initial_state(params, opt, loop_key, config)
     env_steps, done = 0, 0
     per_update = config.num_envs * T
+    update_s = None  # seconds per update of the last call (the first one compiles)
     while done < config.updates and not ctx.should_stop(env_steps):
         if config.lr_schedule == "budget":
             spent = max(ctx.spent(env_steps), done / config.updates)
             state = state.replace(lr=jnp.float32(budget_lr(config, spent)))
+        n = updates_this_call(config, done, per_update, *ctx.remaining(env_steps), update_s)
         t0 = time.perf_counter()
-        state, m = chunk(state)
+        state, m = chunk(state, jnp.int32(n))
         m = jax.device_get(m)
         dt = time.perf_counter() - t0
-        done += config.chunk
-        env_steps += config.chunk * per_update
+        update_s = None if done == 0 else dt / n
+        done += n
+        env_steps += n * per_update
         metrics = {k: float(np.mean(v)) for k, v in m.items()}
-        metrics.update({"train/updates": done, "time/updates_per_s": config.chunk / dt,
-                        "time/env_steps_per_s": config.chunk * per_update / dt})
+        metrics.update({"train/updates": done, "time/updates_per_s": n / dt,
+                        "time/env_steps_per_s": n * per_update / dt})
         ctx.report(Policy(act, state.params), env_steps, metrics)
     return TrainResult(Policy(act, state.params), env_steps=env_steps,
                        metrics={"train/updates": done})
