@@ -176,6 +176,15 @@ def test_evaluation_does_not_count_against_the_budget():
     assert ctx.elapsed() < 0.25
 
 
+def test_remaining_budget():
+    """(seconds, env steps) left; None where the budget has no such limit."""
+    ev = Evaluator(make_task("pointmass"), FAST_EVAL)
+    assert RunContext(Budget(env_steps=100), ev, 0).remaining(30) == (None, 70)
+    left_s, left_steps = RunContext(Budget(seconds=50, env_steps=10), ev, 0).remaining(12)
+    assert 49.0 < left_s <= 50.0 and left_steps == -2  # overspent steps read negative
+    assert RunContext(Budget(seconds=50), ev, 0).remaining(10 ** 9)[1] is None
+
+
 @pytest.mark.parametrize("kw", [dict(seconds=0), dict(env_steps=-5), dict()])
 def test_invalid_budgets(kw):
     with pytest.raises(BudgetError):
