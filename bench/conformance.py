@@ -6,7 +6,9 @@ task under an env-step budget, `repeats` times with one seed:
 
 - runs:          the run finishes 'ok' with a finite final score;
 - budget:        it stops near its env-step budget (at most twice the budget: one update or
-                 chunk past the last `should_stop` check is normal);
+                 chunk past the last `should_stop` check is normal); a failure says whether
+                 the method ran on past `should_stop` or one update outgrew the budget (more
+                 env steps per report than the whole budget: shrink the update or the preset);
 - compiles once: no function is traced (and compiled) again once a report has followed its
                  first trace (the harness reads JAX's explanations of its tracing-cache
                  misses, which also say why: "now f32[]{weak_type=True} and before
@@ -67,11 +69,18 @@ def findings(records: list[dict], env_steps: int) -> list[Finding]:
         return [Finding("runs", False, "; ".join(why))]
     out.append(Finding("runs", True, f"ok, final normalized {first['final_normalized']:.3f}"))
     used = int(first["env_steps"])
+    per_report = used / max(int(first.get("reports") or 0), 1)
+    if used <= 2 * env_steps:
+        hint = ""
+    elif per_report > env_steps:  # it stopped when told, but one update outgrew the budget
+        hint = (f": one report interval (an update) simulates {per_report:.0f} env steps on "
+                f"average, more than the whole budget; make the update smaller (a smaller "
+                f"preset such as --preset cpu, or --set) or give a larger --steps")
+    else:
+        hint = (": call ctx.should_stop(env_steps) before each update and pass the steps "
+                "simulated so far")
     out.append(Finding("budget", used <= 2 * env_steps,
-                       f"used {used} of {env_steps} env steps" + (
-                           "" if used <= 2 * env_steps else
-                           ": call ctx.should_stop(env_steps) before each update and pass "
-                           "the steps simulated so far")))
+                       f"used {used} of {env_steps} env steps" + hint))
     again = first.get("retraced")
     if again is None:
         out.append(Finding("compiles once", None,

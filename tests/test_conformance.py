@@ -57,6 +57,9 @@ class FaultConfig:
     SHAC: the second update meets a weakly typed leaf and compiles once more."""
     unseeded: bool = False
     overrun: bool = False
+    big_update: bool = False
+    """One update simulates 5000 env steps: more than twice a 1000-step budget, although
+    the method stops when told (ILD's paper preset under conform's default budget)."""
 
 
 def _act(params, obs, key, deterministic):
@@ -83,7 +86,7 @@ def faulty_train(task, demo, config, ctx, seed):
         else:
             step = _update
         state = step(state, config.weak_metric)
-        steps += 100
+        steps += 5000 if config.big_update else 100
         ctx.report(Policy(_act, state[0]), steps, {"train/loss": float(state[0])})
     return TrainResult(Policy(_act, state[0]), env_steps=steps)
 
@@ -135,6 +138,16 @@ def test_a_method_that_ignores_should_stop_fails_budget(faulty):
     found = _check(overrun=True)
     assert found["budget"].passed is False
     assert "used 10000 of 1000 env steps" in found["budget"].detail
+    assert "call ctx.should_stop(env_steps) before each update" in found["budget"].detail
+
+
+def test_an_update_bigger_than_the_budget_is_named_as_such(faulty):
+    """It stopped when told: the hint is to shrink the update, not to call should_stop."""
+    found = _check(big_update=True)
+    detail = found["budget"].detail
+    assert found["budget"].passed is False and "used 5000 of 1000 env steps" in detail
+    assert "simulates 5000 env steps on average" in detail and "--preset cpu" in detail
+    assert "should_stop" not in detail
 
 
 def test_a_failed_run_reports_its_message_and_stops_there():
