@@ -226,13 +226,11 @@ class RunContext:
         For methods that run several updates per call and must not overrun the budget."""
         b = self.budget
         return (None if b.seconds is None else b.seconds - self.clock.elapsed(),
-                None if b.env_steps is None else b.env_steps - int(env_steps))
+                None if b.env_steps is None else b.env_steps - env_steps)
 
     def should_stop(self, env_steps: int) -> bool:
         """True once the budget is spent: the method must then return its final policy."""
-        b = self.budget
-        return ((b.seconds is not None and self.clock.elapsed() >= b.seconds)
-                or (b.env_steps is not None and env_steps >= b.env_steps))
+        return any(left is not None and left <= 0 for left in self.remaining(env_steps))
 
     def report(self, policy: Policy, env_steps: int, metrics: Mapping[str, Any] | None = None,
                force_eval: bool = False) -> None:

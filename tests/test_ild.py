@@ -223,8 +223,9 @@ def test_remat_computes_the_same_loss_and_gradient():
 
 
 def test_chunk_runs_the_same_updates_as_one_per_call():
-    """chunk=K (K updates in one jitted lax.scan, as the speed benchmark's ild_chunkK rows
-    and brax's APG epoch run them) is a call structure, not a different method: 3 updates
+    """chunk=K (K updates in one jitted call, as the trainer and the speed benchmark's
+    ild_chunkK rows run them, and as brax's APG scans an epoch) is a call structure, not a
+    different method: 3 updates
     scanned in one call give the parameters 3 separate calls give, to float32 round-off;
     so does the trainer's chunk of 4 told that only 3 are left in the budget (and its
     metrics are their mean)."""
