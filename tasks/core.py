@@ -7,7 +7,7 @@ import functools
 import jax
 import jax.numpy as jnp
 from brax import envs as brax_envs
-from brax.envs.base import Env, State, Wrapper
+from brax.envs.base import Env, PipelineEnv, State, Wrapper
 
 from tasks.registry import TaskSpec, get_spec
 
@@ -178,6 +178,34 @@ def without_joint_limits(task: Task) -> Task:
         raise ValueError(f"task {task.name!r} has no brax joint limits to remove "
                          "(this is for brax tasks with limited joints)")
     inner.sys = inner.sys.replace(dof=dof.replace(limit=None))
+    return Task(spec=task.spec, env=env)
+
+
+def with_substep_remat(task: Task) -> Task:
+    """A fresh copy of brax task `task` (same `sys`, so a `without_joint_limits` copy stays
+    one) whose physics step rematerializes each of its `n_frames` substeps in the backward
+    pass: brax's `PipelineEnv.pipeline_step` scans the substeps and reverse mode stacks every
+    substep's intermediate values into per-substep buffers (hundreds of arrays, one copy each
+    per substep); checkpointed, a substep stores only its input state and recomputes the
+    rest next to its backward. The same function and gradient (to float32 round-off: tested);
+    what it buys is measured by `python -m methods.ild.benchmark` (README ILD speed). The
+    registry's cached task is left as it is. Errors for a task with no brax substep loop."""
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
+    if not isinstance(inner, PipelineEnv):
+        raise ValueError(f"task {task.name!r} has no brax physics pipeline to rematerialize "
+                         "(substep_remat is for brax PipelineEnv tasks; leave it False)")
+    inner.sys = given.sys
+
+    def pipeline_step(pipeline_state, action):
+        # brax's own pipeline_step (envs/base.py) with the substep checkpointed
+        # (prevent_cse=False: inside a scan the CSE barrier only costs time).
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def substep(state, _):
+            return inner._pipeline.step(inner.sys, state, action, inner._debug), None
+        return jax.lax.scan(substep, pipeline_state, (), inner._n_frames)[0]
+
+    inner.pipeline_step = pipeline_step  # the instance's; brax's step calls self.pipeline_step
     return Task(spec=task.spec, env=env)
 
 

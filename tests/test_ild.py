@@ -13,7 +13,7 @@ from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import (chamfer_alpha, multi_demo, nearest, normalize_grad,
                                 pairwise_distance, stepwise_l2)
-from methods.ild.train import StateNorm, make_rollout_loss
+from methods.ild.train import StateNorm, make_rollout_loss, rollout_physics
 from tasks import make_task
 from tasks.demo import load_demo
 
@@ -540,3 +540,57 @@ def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
     assert r["params"] == sum(x.size for x in jax.tree_util.tree_leaves(
         TanhGaussianPolicy(task.obs_size, task.action_size, (32, 32)).init(
             jax.random.PRNGKey(0), ObsNorm.fit(jnp.zeros((2, task.obs_size))))["net"]))
+
+
+def test_substep_remat_computes_the_same_physics_and_gradient():
+    """with_substep_remat (substep_remat=True) checkpoints each brax substep inside a control
+    step: the same states and the same gradient through 3 steps (acrobot: brax's generalized
+    pipeline, 4 substeps per step), to float32 round-off, with less of the backward pass's
+    working memory; the registry's cached task keeps brax's own pipeline_step."""
+    from methods.ild.benchmark import temp_bytes
+    from tasks.core import open_loop, with_substep_remat
+    task = make_task("acrobot")
+    sub = with_substep_remat(task)
+    assert sub.env.unwrapped is not task.env.unwrapped
+    assert "pipeline_step" not in vars(task.env.unwrapped)  # the cached env is untouched
+    s0 = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), 4))
+    acts = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (3, 4, task.action_size))
+
+    def total(t):
+        def f(a):
+            _, m = open_loop(jax.vmap(t.env.step), s0, a, jax.vmap(t.matched_state))
+            return jnp.sum(jnp.sin(m))
+        return f
+
+    vjp = {n: jax.jit(jax.value_and_grad(total(t))) for n, t in (("brax", task), ("sub", sub))}
+    (v0, g0), (v1, g1) = vjp["brax"](acts), vjp["sub"](acts)
+    assert float(v0) == pytest.approx(float(v1), rel=1e-6)
+    np.testing.assert_allclose(g1, g0, rtol=1e-4, atol=1e-6)
+    assert float(jnp.abs(g0).sum()) > 0
+    remat = jax.make_jaxpr(jax.checkpoint(jnp.sin))(1.0).eqns[0].primitive.name + "["
+    assert remat in str(jax.make_jaxpr(total(sub))(acts))
+    assert remat not in str(jax.make_jaxpr(total(task))(acts))
+    mem = {n: temp_bytes(f.lower(acts).compile()) for n, f in vjp.items()}
+    assert mem["sub"] < mem["brax"]
+
+
+def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks():
+    from tasks.core import with_substep_remat, without_joint_limits
+    swimmer = make_task("swimmer")
+    assert swimmer.env.unwrapped.sys.dof.limit is not None
+    both = with_substep_remat(without_joint_limits(swimmer))
+    assert both.env.unwrapped.sys.dof.limit is None
+    assert make_task("swimmer").env.unwrapped.sys.dof.limit is not None
+    with pytest.raises(ValueError, match="pointmass.*substep_remat"):
+        with_substep_remat(make_task("pointmass"))
+    with pytest.raises(ValueError, match="substep_remat"):
+        rollout_physics(make_task("pointmass"), ILDConfig(substep_remat=True))
+
+
+def test_speed_benchmark_runs_the_rows_asked_for():
+    from methods.ild.benchmark import run
+    rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=2,
+               only=("forward", "ild_substep", "ild_substep_chunk"))
+    assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax substep loop
+    with pytest.raises(ValueError, match="unknown benchmark rows.*'nope'"):
+        run("pointmass", batch=4, repeats=1, with_apg=False, only=("forward", "nope"))

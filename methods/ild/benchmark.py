@@ -9,7 +9,9 @@ rows:
                per-step gradient normalization and truncation 10, clip, Adam)
   ild_no_gn    the same without per-step gradient normalization
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
-  ild_chunkK, ild_remat_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
+  ild_substep  the same with jax.checkpoint on every physics substep inside a step
+               (`--set substep_remat=true`; brax tasks only)
+  ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
                own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
@@ -46,7 +48,7 @@ from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
 from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
-                               make_update)
+                               make_update, rollout_physics)
 from tasks import make_task
 from tasks.core import open_loop
 
@@ -119,8 +121,14 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     return float(jnp.linalg.norm(g))
 
 
+ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_chunk",
+        "ild_remat_chunk", "ild_substep_chunk", "step", "policy", "chamfer", "apg")
+"""Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
+'policy' are the forward + VJP pairs)."""
+
+
 def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
-        chunk: int = 4) -> list[dict]:
+        chunk: int = 4, only: tuple[str, ...] = ROWS) -> list[dict]:
     task = make_task(task_name)
     T = task.episode_length
     base = ILDConfig(num_envs=batch)
@@ -147,16 +155,28 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
                      "sys_s": float(f"{t.sys_s:.3g}") if t is not None else None})
         print(rows[-1], flush=True)
 
+    unknown = set(only) - set(ROWS)
+    if unknown:
+        raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from {ROWS}")
     loss_fn = make_rollout_loss(task, policy, goals, norm, base)
-    row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
+    if "forward" in only:
+        row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
     remat = dataclasses.replace(base, remat=True)
-    for name, cfg, n in (("ild", base, 1),
-                         ("ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
-                         ("ild_remat", remat, 1), (f"ild_chunk{chunk}", base, chunk),
-                         (f"ild_remat_chunk{chunk}", remat, chunk)):
-        if n > 1 and chunk == 1:
+    substep = dataclasses.replace(base, substep_remat=True)
+    for group, name, cfg, n in (
+            ("ild", "ild", base, 1),
+            ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
+            ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
+            ("ild_chunk", f"ild_chunk{chunk}", base, chunk),
+            ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
+            ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk)):
+        if (n > 1 and chunk == 1) or group not in only:
             continue
-        update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
+        if cfg.substep_remat and not hasattr(task.env.unwrapped, "_n_frames"):
+            print(f"{name}: left out on {task_name}: no brax substep loop", flush=True)
+            continue
+        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg,
+                                     k[2])
         state = initial_state(params, opt, k[3], cfg)
         if n == 1:
             t = _time(lambda s: update(s, None)[0], (state,), repeats)
@@ -170,24 +190,28 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     s0 = jax.vmap(task.env.reset)(init_keys)
     a0 = jnp.zeros((batch, task.action_size))
     step = jax.vmap(task.env.step)
-    row("step_forward", _time(step, (s0, a0), 5 * repeats), batch)
+    if "step" in only:
+        row("step_forward", _time(step, (s0, a0), 5 * repeats), batch)
 
-    def step_vjp(s, a):
-        out, pull = jax.vjp(step, s, a)
-        return pull(jax.tree.map(jnp.ones_like, out))
-    row("step_vjp", _time(step_vjp, (s0, a0), 5 * repeats), batch)
-    sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
-    pkeys = jax.random.split(k[3], batch)
-    row("policy_forward", _time(sample, (params, s0.obs, pkeys), 5 * repeats), batch)
+        def step_vjp(s, a):
+            out, pull = jax.vjp(step, s, a)
+            return pull(jax.tree.map(jnp.ones_like, out))
+        row("step_vjp", _time(step_vjp, (s0, a0), 5 * repeats), batch)
+    if "policy" in only:
+        sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
+        pkeys = jax.random.split(k[3], batch)
+        row("policy_forward", _time(sample, (params, s0.obs, pkeys), 5 * repeats), batch)
 
-    def policy_vjp(p, o):
-        out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
-        return pull(jnp.ones_like(out))
-    row("policy_vjp", _time(policy_vjp, (params, s0.obs), 5 * repeats), batch)
-    x = jax.random.normal(k[3], (batch, T, task.state_size))
-    cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
-        lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
-    row("chamfer", _time(cham, (x,), repeats))
+        def policy_vjp(p, o):
+            out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
+            return pull(jnp.ones_like(out))
+        row("policy_vjp", _time(policy_vjp, (params, s0.obs), 5 * repeats), batch)
+    if "chamfer" in only:
+        x = jax.random.normal(k[3], (batch, T, task.state_size))
+        cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
+            lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
+        row("chamfer", _time(cham, (x,), repeats))
+    with_apg = with_apg and "apg" in only
     if with_apg and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
@@ -197,20 +221,24 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         sps = _apg_sps(task, batch, base.hidden, repeats)
         row("apg", None, per_call=repeats, sec=steps / sps, compile_s=time.perf_counter() - t0)
     by = {r["what"]: r for r in rows}
-    ratios = {"update_over_forward": by["ild"]["seconds"] / by["forward"]["seconds"],
-              "chamfer_share_of_update": by["chamfer"]["seconds"] / by["ild"]["seconds"],
-              "chamfer_share_of_update_memory": (by["chamfer"]["temp_mib"]
-                                                 / by["ild"]["temp_mib"]),
-              "step_vjp_over_forward": (by["step_vjp"]["seconds"]
-                                        / by["step_forward"]["seconds"]),
-              "policy_vjp_over_forward": (by["policy_vjp"]["seconds"]
-                                          / by["policy_forward"]["seconds"])}
-    if chunk > 1:
-        ratios["chunk_speedup"] = by["ild"]["seconds"] / by[f"ild_chunk{chunk}"]["seconds"]
-        ratios["remat_chunk_speedup"] = (by["ild_remat"]["seconds"]
-                                         / by[f"ild_remat_chunk{chunk}"]["seconds"])
+    ratios = {}
+
+    def ratio(name, num, den, field="seconds"):
+        if num in by and den in by:
+            ratios[name] = by[num][field] / by[den][field]
+    ratio("update_over_forward", "ild", "forward")
+    ratio("substep_update_over_forward", "ild_substep", "forward")
+    ratio("chamfer_share_of_update", "chamfer", "ild")
+    ratio("chamfer_share_of_update_memory", "chamfer", "ild", "temp_mib")
+    ratio("step_vjp_over_forward", "step_vjp", "step_forward")
+    ratio("policy_vjp_over_forward", "policy_vjp", "policy_forward")
+    ratio("substep_speedup", "ild", "ild_substep")
+    ratio("chunk_speedup", "ild", f"ild_chunk{chunk}")
+    ratio("remat_chunk_speedup", "ild_remat", f"ild_remat_chunk{chunk}")
+    ratio("substep_chunk_speedup", "ild_substep", f"ild_substep_chunk{chunk}")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
-        for name in ("ild", "ild_remat", f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}"):
+        for name in ("ild", "ild_remat", "ild_substep", f"ild_chunk{chunk}",
+                     f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
                                               / by["apg"]["env_steps_per_s"])
@@ -228,12 +256,17 @@ def main(argv=None):
     p.add_argument("--chunk", type=int, default=4,
                    help="updates per call of the ild_chunkK rows (1: leave them out)")
     p.add_argument("--no-apg", action="store_true")
+    p.add_argument("--rows", default=",".join(ROWS),
+                   help=f"comma-separated row groups to run (default all: {','.join(ROWS)})")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
     if a.chunk < 1 or a.repeats < 1 or a.batch < 1:
         p.error(f"--chunk, --repeats and --batch must be >= 1, got {a.chunk}, {a.repeats}, "
                 f"{a.batch}")
-    rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk)
+    only = tuple(r for r in a.rows.split(",") if r)
+    if set(only) - set(ROWS):
+        p.error(f"--rows: unknown {sorted(set(only) - set(ROWS))}; choose from {ROWS}")
+    rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
     if a.out:
         from bench.report import append_csv
         append_csv(rows, a.out)

@@ -74,6 +74,14 @@ class ILDConfig:
     remat: bool = False
     """Rematerialize each step in the backward pass (jax.checkpoint): less memory, more
     compute; measured by `python -m methods.ild.benchmark`."""
+    substep_remat: bool = False
+    """Rematerialize each physics substep inside a control step in the backward pass
+    (`tasks.core.with_substep_remat`: brax's substep scan stores only each substep's input
+    state). The same gradient, 1.21-1.51x faster on all brax tasks but swimmer (1.00x): on
+    one CPU core at B = 32 an update took 0.377 s instead of 0.502 on hopper and 1.334
+    instead of 2.018 on ant (1.518 with ant's `remat`), with 1/2 to 1/7 of the working
+    memory (`python -m methods.ild.benchmark`, session 27, README ILD speed). Off by default:
+    every recorded ILD cell ran without it (making it the default is a version bump)."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without

@@ -20,7 +20,7 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
                                    make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
-from tasks.core import without_joint_limits
+from tasks.core import with_substep_remat, without_joint_limits
 
 
 @flax.struct.dataclass
@@ -189,6 +189,16 @@ def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: flo
     return max(n, 1)
 
 
+def rollout_physics(task, config: ILDConfig):
+    """The task the training rollouts differentiate through (evaluation always uses `task`):
+    without joint limits and/or with each physics substep rematerialized, as configured."""
+    if not config.joint_limits:
+        task = without_joint_limits(task)
+    if config.substep_remat:
+        task = with_substep_remat(task)
+    return task
+
+
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):
     """Alg. 1 line 3: BC on (o_t, a_t) with its own Adam (same lr and clipping)."""
     opt = bc_optimizer(config.learning_rate, config.max_grad_norm)
@@ -220,9 +230,8 @@ def train(task, demo, config: ILDConfig, ctx, seed: int) -> TrainResult:
         params, bc_final = bc_warm_start(policy, params, obs, actions, config, bc_key)
         ctx.report(Policy(act, params), 0, {"bc/loss": bc_final}, force_eval=True)
 
-    # the physics the rollouts differentiate through (evaluation always uses `task`)
-    rollout_task = task if config.joint_limits else without_joint_limits(task)
-    update, opt, lr = make_update(rollout_task, policy, goals, norm, config, reset_key)
+    update, opt, lr = make_update(rollout_physics(task, config), policy, goals, norm, config,
+                                  reset_key)
     chunk = make_chunk(update, config.chunk)
     state = initial_state(params, opt, loop_key, config)
     env_steps, done = 0, 0
