@@ -127,16 +127,33 @@ ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_chunk",
 'policy' are the forward + VJP pairs)."""
 
 
+def check_rows(only) -> None:
+    """ValueError naming any of `only` that is not a row group of ROWS."""
+    unknown = set(only) - set(ROWS)
+    if unknown:
+        raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from {ROWS}")
+
+
+def speed_setup(task, config: ILDConfig):
+    """What a speed measurement of ILD's update needs, seeded: (policy, goals, norm, params,
+    keys). Goals are random states of the task's matched-state size with an identity
+    normalizer (speed does not depend on them); keys[2] is the reset key and keys[3] the
+    training-state key."""
+    policy = TanhGaussianPolicy(task.obs_size, task.action_size, config.hidden)
+    k = jax.random.split(jax.random.PRNGKey(0), 4)
+    goals = jax.random.normal(k[0], (1, task.episode_length, task.state_size))
+    norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))
+    params = policy.init(k[1], ObsNorm(jnp.zeros(task.obs_size), jnp.ones(task.obs_size)))
+    return policy, goals, norm, params, k
+
+
 def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         chunk: int = 4, only: tuple[str, ...] = ROWS) -> list[dict]:
+    check_rows(only)
     task = make_task(task_name)
     T = task.episode_length
     base = ILDConfig(num_envs=batch)
-    policy = TanhGaussianPolicy(task.obs_size, task.action_size, base.hidden)
-    k = jax.random.split(jax.random.PRNGKey(0), 4)
-    goals = jax.random.normal(k[0], (1, T, task.state_size))
-    norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))
-    params = policy.init(k[1], ObsNorm(jnp.zeros(task.obs_size), jnp.ones(task.obs_size)))
+    policy, goals, norm, params, k = speed_setup(task, base)
     init_keys = jax.random.split(k[2], batch)
     steps = batch * T
     rows = []
@@ -155,9 +172,6 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
                      "sys_s": float(f"{t.sys_s:.3g}") if t is not None else None})
         print(rows[-1], flush=True)
 
-    unknown = set(only) - set(ROWS)
-    if unknown:
-        raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from {ROWS}")
     loss_fn = make_rollout_loss(task, policy, goals, norm, base)
     if "forward" in only:
         row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
@@ -172,11 +186,12 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk)):
         if (n > 1 and chunk == 1) or group not in only:
             continue
-        if cfg.substep_remat and not hasattr(task.env.unwrapped, "_n_frames"):
-            print(f"{name}: left out on {task_name}: no brax substep loop", flush=True)
+        try:
+            physics = rollout_physics(task, cfg)
+        except ValueError as e:  # substep_remat on a task with no brax substep loop
+            print(f"{name}: left out on {task_name}: {e}", flush=True)
             continue
-        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg,
-                                     k[2])
+        update, opt, _ = make_update(physics, policy, goals, norm, cfg, k[2])
         state = initial_state(params, opt, k[3], cfg)
         if n == 1:
             t = _time(lambda s: update(s, None)[0], (state,), repeats)
@@ -264,8 +279,10 @@ def main(argv=None):
         p.error(f"--chunk, --repeats and --batch must be >= 1, got {a.chunk}, {a.repeats}, "
                 f"{a.batch}")
     only = tuple(r for r in a.rows.split(",") if r)
-    if set(only) - set(ROWS):
-        p.error(f"--rows: unknown {sorted(set(only) - set(ROWS))}; choose from {ROWS}")
+    try:
+        check_rows(only)
+    except ValueError as e:
+        p.error(f"--rows: {e}")
     rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
     if a.out:
         from bench.report import append_csv

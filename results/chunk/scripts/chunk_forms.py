@@ -19,19 +19,15 @@ import time
 import jax
 import jax.numpy as jnp
 
-from methods.common.policy import ObsNorm, TanhGaussianPolicy
+from methods.ild.benchmark import speed_setup
 from methods.ild.config import ILDConfig
-from methods.ild.train import StateNorm, initial_state, make_chunk, make_update
+from methods.ild.train import initial_state, make_chunk, make_update
 from tasks import make_task
 
 task = make_task(sys.argv[1])
-K, B, T = 4, 32, task.episode_length
+K, B = 4, 32
 cfg = ILDConfig(num_envs=B)
-policy = TanhGaussianPolicy(task.obs_size, task.action_size, cfg.hidden)
-k = jax.random.split(jax.random.PRNGKey(0), 4)
-goals = jax.random.normal(k[0], (1, T, task.state_size))
-norm = StateNorm(jnp.zeros(task.state_size), jnp.ones(task.state_size))
-params = policy.init(k[1], ObsNorm(jnp.zeros(task.obs_size), jnp.ones(task.obs_size)))
+policy, goals, norm, params, k = speed_setup(task, cfg)
 update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
 s = initial_state(params, opt, k[3], cfg)
 n4 = jnp.int32(K)
