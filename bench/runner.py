@@ -59,9 +59,13 @@ def git_revision() -> str | None:
 
 
 def machine() -> dict:
+    """The machine a record was made on. `xla_flags` is the environment's XLA_FLAGS (None
+    unset): XLA's code generator changes speed (README ILD speed, session 28), so a run's
+    updates per budget depend on it."""
     return {"platform": platform.platform(), "processor": platform.processor(),
             "cpus": os.cpu_count(), "python": platform.python_version(),
-            "jax_devices": [str(d) for d in jax.devices()]}
+            "jax_devices": [str(d) for d in jax.devices()],
+            "xla_flags": os.environ.get("XLA_FLAGS") or None}
 
 
 def resources() -> dict:

@@ -590,7 +590,24 @@ def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks(
 def test_speed_benchmark_runs_the_rows_asked_for():
     from methods.ild.benchmark import run
     rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=2,
-               only=("forward", "ild_substep", "ild_substep_chunk"))
+               only=("forward", "ild_substep", "ild_both", "ild_substep_chunk"))
     assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax substep loop
     with pytest.raises(ValueError, match="unknown benchmark rows.*'nope'"):
         run("pointmass", batch=4, repeats=1, with_apg=False, only=("forward", "nope"))
+
+
+def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
+    # Rows timed under another XLA code generator are not comparable: the CSV says which.
+    import pandas as pd
+    from methods.ild.benchmark import main
+    out = str(tmp_path / "speed.csv")
+    args = ["--task", "pointmass", "--batch", "4", "--repeats", "1", "--no-apg",
+            "--rows", "forward", "--out", out]
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    main(args)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    main(args)
+    rows = pd.read_csv(out)
+    assert list(rows.what) == ["forward", "forward"]
+    assert rows.xla_flags.isna().tolist() == [True, False]
+    assert rows.xla_flags.iloc[1] == "--xla_cpu_use_fusion_emitters=false"

@@ -77,6 +77,19 @@ def test_record_round_trip_and_fields(toy, store):
     assert rec["config"] == {"gain": 2.0, "nan_after": -1, "crash": False}
 
 
+def test_record_names_the_xla_flags_it_ran_under(toy, store, monkeypatch):
+    # XLA's CPU code generator changes speed, so updates per budget: the record says which.
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    rec, _ = execute(prepare(_req(seed=1)), store, log=lambda s: None)
+    assert rec["machine"]["xla_flags"] is None
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    p = prepare(_req(seed=2))
+    rec, _ = execute(p, store, log=lambda s: None)
+    assert rec["machine"]["xla_flags"] == "--xla_cpu_use_fusion_emitters=false"
+    monkeypatch.delenv("XLA_FLAGS")  # recorded, not hashed: the same cell either way
+    assert prepare(_req(seed=2)).run_id == p.run_id
+
+
 def test_resume_skips_finished_cells(toy, store):
     p = prepare(_req())
     rec, skipped = execute(p, store, log=lambda s: None)

@@ -11,6 +11,8 @@ rows:
   ild_remat    the same with jax.checkpoint on every step (rematerialization)
   ild_substep  the same with jax.checkpoint on every physics substep inside a step
                (`--set substep_remat=true`; brax tasks only)
+  ild_both     both: each step checkpointed and each substep inside it (the outer scan then
+               stores one state per step, not one per substep)
   ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
                own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import resource
 import time
 
@@ -121,7 +124,7 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     return float(jnp.linalg.norm(g))
 
 
-ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_chunk",
+ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_both", "ild_chunk",
         "ild_remat_chunk", "ild_substep_chunk", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs)."""
@@ -181,6 +184,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild", "ild", base, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
+            ("ild_both", "ild_both", dataclasses.replace(substep, remat=True), 1),
             ("ild_chunk", f"ild_chunk{chunk}", base, chunk),
             ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
             ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk)):
@@ -252,7 +256,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("remat_chunk_speedup", "ild_remat", f"ild_remat_chunk{chunk}")
     ratio("substep_chunk_speedup", "ild_substep", f"ild_substep_chunk{chunk}")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
-        for name in ("ild", "ild_remat", "ild_substep", f"ild_chunk{chunk}",
+        for name in ("ild", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
                      f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
@@ -286,7 +290,8 @@ def main(argv=None):
     rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
     if a.out:
         from bench.report import append_csv
-        append_csv(rows, a.out)
+        flags = os.environ.get("XLA_FLAGS") or None  # XLA's code generator changes speed
+        append_csv([{**r, "xla_flags": flags} for r in rows], a.out)
 
 
 if __name__ == "__main__":

@@ -18,13 +18,13 @@ import collections
 import glob
 import re
 import tempfile
-import time
 
 import jax
 import jax.numpy as jnp
 
 from tasks import make_task
 from tasks.core import with_substep_remat
+from timing import best_seconds, vjp_of_ones
 
 
 def main(argv=None):
@@ -41,19 +41,9 @@ def main(argv=None):
     s0 = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), a.batch))
     a0 = jnp.full((a.batch, task.action_size), 0.3)
 
-    def vjp(s, act):
-        out, pull = jax.vjp(step, s, act)
-        return pull(jax.tree.map(jnp.ones_like, out))
-
-    fns = {"forward": jax.jit(step), "vjp": jax.jit(vjp)}
+    fns = {"forward": jax.jit(step), "vjp": jax.jit(vjp_of_ones(step))}
     for name, f in fns.items():
-        jax.block_until_ready(f(s0, a0))
-        best = 1e9
-        for _ in range(3):
-            t0 = time.perf_counter()
-            for _ in range(50):
-                jax.block_until_ready(f(s0, a0))
-            best = min(best, (time.perf_counter() - t0) / 50)
+        best = best_seconds(f, s0, a0)
         print(f"{a.task} {'substep-remat' if a.substep_remat else 'brax'} {name}: "
               f"{best * 1e3:.3f} ms per call")
     calls = 20
