@@ -87,6 +87,15 @@ def _time(fn, args, repeats) -> Timing:
                   (r1.ru_stime - r0.ru_stime) / repeats)
 
 
+def vjp_of_ones(f):
+    """Forward + backward of `f` with a cotangent of ones on every output (the step and
+    policy VJP rows; the step-VJP scripts in results/substep/scripts)."""
+    def vjp(*args):
+        out, pull = jax.vjp(f, *args)
+        return pull(jax.tree.map(jnp.ones_like, out))
+    return vjp
+
+
 def _apg_sps(task, batch, hidden, repeats):
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as apg
@@ -211,20 +220,13 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     step = jax.vmap(task.env.step)
     if "step" in only:
         row("step_forward", _time(step, (s0, a0), 5 * repeats), batch)
-
-        def step_vjp(s, a):
-            out, pull = jax.vjp(step, s, a)
-            return pull(jax.tree.map(jnp.ones_like, out))
-        row("step_vjp", _time(step_vjp, (s0, a0), 5 * repeats), batch)
+        row("step_vjp", _time(vjp_of_ones(step), (s0, a0), 5 * repeats), batch)
     if "policy" in only:
         sample = jax.vmap(policy.sample, in_axes=(None, 0, 0))
         pkeys = jax.random.split(k[3], batch)
         row("policy_forward", _time(sample, (params, s0.obs, pkeys), 5 * repeats), batch)
-
-        def policy_vjp(p, o):
-            out, pull = jax.vjp(lambda p, o: sample(p, o, pkeys), p, o)
-            return pull(jnp.ones_like(out))
-        row("policy_vjp", _time(policy_vjp, (params, s0.obs), 5 * repeats), batch)
+        row("policy_vjp", _time(vjp_of_ones(lambda p, o: sample(p, o, pkeys)),
+                                (params, s0.obs), 5 * repeats), batch)
     if "chamfer" in only:
         x = jax.random.normal(k[3], (batch, T, task.state_size))
         cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(

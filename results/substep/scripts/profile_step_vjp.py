@@ -22,9 +22,10 @@ import tempfile
 import jax
 import jax.numpy as jnp
 
+from methods.ild.benchmark import vjp_of_ones
 from tasks import make_task
 from tasks.core import with_substep_remat
-from timing import best_seconds, vjp_of_ones
+from timing import best_seconds
 
 
 def main(argv=None):

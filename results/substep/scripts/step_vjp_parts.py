@@ -16,8 +16,9 @@ import jax.numpy as jnp
 from brax import actuator, com, kinematics
 from brax.spring import collisions, integrator, joints
 
+from methods.ild.benchmark import vjp_of_ones
 from tasks import make_task
-from timing import best_seconds, vjp_of_ones
+from timing import best_seconds
 
 
 def main(argv=None):

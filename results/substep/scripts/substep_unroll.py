@@ -15,9 +15,10 @@ import argparse
 import jax
 import jax.numpy as jnp
 
+from methods.ild.benchmark import vjp_of_ones
 from tasks import make_task
 from tasks.core import build_env
-from timing import best_seconds, vjp_of_ones
+from timing import best_seconds
 
 FORMS = {"brax": None, "ckpt": (True, 1, False), "unroll": (False, True, False),
          "ckpt_unroll": (True, True, False), "ckpt_unroll_cse": (True, True, True)}

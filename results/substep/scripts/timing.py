@@ -1,11 +1,11 @@
-"""What the step-VJP scripts beside it share (run them as scripts: this folder is then on
-the import path)."""
+"""The timing the step-VJP scripts beside it share (run them as scripts: this folder is then
+on the import path); their VJP of ones is `methods.ild.benchmark.vjp_of_ones`, the
+benchmark's own."""
 from __future__ import annotations
 
 import time
 
 import jax
-import jax.numpy as jnp
 
 
 def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
@@ -20,10 +20,3 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
         best = min(best, (time.perf_counter() - t0) / calls)
     return best
 
-
-def vjp_of_ones(f):
-    """Forward + backward of `f` with a cotangent of ones on every output."""
-    def vjp(*args):
-        out, pull = jax.vjp(f, *args)
-        return pull(jax.tree.map(jnp.ones_like, out))
-    return vjp

@@ -21,17 +21,14 @@ def record(task_name: str, out: str) -> None:
     import jax.numpy as jnp
 
     from tasks import make_task
+    from tasks.core import open_loop
     task = make_task(task_name)
-    env = task.env
-    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
+    step = jax.vmap(task.env.step)
+    s = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
     acts = jax.random.uniform(jax.random.PRNGKey(1), (128, 8, task.action_size),
                               minval=-1, maxval=1)
-
-    def step(st, u):
-        st = jax.vmap(env.step)(st, u)
-        return st, st.obs
-    obs = jax.jit(lambda st: jax.lax.scan(step, st, acts)[1])(s)
-    grad = jax.jit(jax.grad(lambda u: jnp.sum(jax.lax.scan(step, s, u)[0].obs[:, 0])))(
+    obs = jax.jit(lambda st: open_loop(step, st, acts, emit=lambda x: x.obs)[1])(s)
+    grad = jax.jit(jax.grad(lambda u: jnp.sum(open_loop(step, s, u)[0].obs[:, 0])))(
         acts[:10])
     np.save(out + ".obs.npy", np.asarray(obs))
     np.save(out + ".grad.npy", np.asarray(grad))
