@@ -195,6 +195,10 @@ def with_substep_remat(task: Task) -> Task:
     if not isinstance(inner, PipelineEnv):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rematerialize "
                          "(substep_remat is for brax PipelineEnv tasks; leave it False)")
+    if "pipeline_step" in vars(given):  # it would be dropped: this step is built from brax's
+        raise ValueError(f"task {task.name!r} already has its own physics step (a "
+                         "with_substep_remat or with_small_dots copy); apply "
+                         "with_substep_remat first, to the task itself")
     inner.sys = given.sys
 
     def pipeline_step(pipeline_state, action):
@@ -206,6 +210,26 @@ def with_substep_remat(task: Task) -> Task:
         return jax.lax.scan(substep, pipeline_state, (), inner._n_frames)[0]
 
     inner.pipeline_step = pipeline_step  # the instance's; brax's step calls self.pipeline_step
+    return Task(spec=task.spec, env=env)
+
+
+def with_small_dots(task: Task) -> Task:
+    """A fresh copy of brax task `task` (same `sys`; composes with `without_joint_limits` and
+    `with_substep_remat` copies) whose physics step computes its small matrix products as
+    multiply-and-sum (`tasks.small_dots.small_dots_as_sums`): the same function and gradient
+    to float32 round-off (tested), which XLA's CPU backend runs faster where a step is made
+    of tiny products (swimmer's generalized step; README ILD speed, session 29). The
+    registry's cached task is left as it is. Errors for a task with no brax physics step.
+    Apply it after `with_substep_remat` (which builds its step from brax's substep and refuses
+    a copy that has its own): the checkpointed substeps are then rewritten inside."""
+    from tasks.small_dots import small_dots_as_sums
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
+    if not isinstance(inner, PipelineEnv):
+        raise ValueError(f"task {task.name!r} has no brax physics step to rewrite "
+                         "(small_dots is for brax PipelineEnv tasks; leave it False)")
+    inner.sys = given.sys
+    inner.pipeline_step = small_dots_as_sums(given.pipeline_step)
     return Task(spec=task.spec, env=env)
 
 

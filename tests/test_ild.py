@@ -590,8 +590,8 @@ def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks(
 def test_speed_benchmark_runs_the_rows_asked_for():
     from methods.ild.benchmark import run
     rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=2,
-               only=("forward", "ild_substep", "ild_both", "ild_substep_chunk"))
-    assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax substep loop
+               only=("forward", "ild_substep", "ild_both", "ild_substep_chunk", "dots"))
+    assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax pipeline
     with pytest.raises(ValueError, match="unknown benchmark rows.*'nope'"):
         run("pointmass", batch=4, repeats=1, with_apg=False, only=("forward", "nope"))
 

@@ -13,6 +13,11 @@ rows:
                (`--set substep_remat=true`; brax tasks only)
   ild_both     both: each step checkpointed and each substep inside it (the outer scan then
                stores one state per step, not one per substep)
+  dots         the physics step's small matrix products as multiply-and-sum
+               (`--set small_dots=true`, `tasks.core.with_small_dots`; brax tasks only):
+               forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
+               (brax's APG on the same rewritten physics, so the ILD / APG ratio compares
+               like with like)
   ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
                own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
@@ -134,7 +139,7 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
 
 
 ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_both", "ild_chunk",
-        "ild_remat_chunk", "ild_substep_chunk", "step", "policy", "chamfer", "apg")
+        "ild_remat_chunk", "ild_substep_chunk", "dots", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs)."""
 
@@ -189,6 +194,17 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
     remat = dataclasses.replace(base, remat=True)
     substep = dataclasses.replace(base, substep_remat=True)
+    dots = dataclasses.replace(base, small_dots=True)
+    if "dots" in only:
+        try:
+            dots_task = rollout_physics(task, dots)
+        except ValueError as e:  # small_dots on a task with no brax physics step
+            print(f"dots: left out on {task_name}: {e}", flush=True)
+            only = tuple(r for r in only if r != "dots")
+        else:
+            fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
+            row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,),
+                                      repeats))
     for group, name, cfg, n in (
             ("ild", "ild", base, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
@@ -196,7 +212,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_both", "ild_both", dataclasses.replace(substep, remat=True), 1),
             ("ild_chunk", f"ild_chunk{chunk}", base, chunk),
             ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
-            ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk)):
+            ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk),
+            ("dots", "ild_dots", dots, 1),
+            ("dots", "ild_substep_dots", dataclasses.replace(substep, small_dots=True), 1)):
         if (n > 1 and chunk == 1) or group not in only:
             continue
         try:
@@ -241,6 +259,11 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         t0 = time.perf_counter()
         sps = _apg_sps(task, batch, base.hidden, repeats)
         row("apg", None, per_call=repeats, sec=steps / sps, compile_s=time.perf_counter() - t0)
+        if "dots" in only:  # the same trainer on the same rewritten physics as ild_*_dots
+            t0 = time.perf_counter()
+            sps = _apg_sps(dots_task, batch, base.hidden, repeats)
+            row("apg_dots", None, per_call=repeats, sec=steps / sps,
+                compile_s=time.perf_counter() - t0)
     by = {r["what"]: r for r in rows}
     ratios = {}
 
@@ -257,12 +280,20 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("chunk_speedup", "ild", f"ild_chunk{chunk}")
     ratio("remat_chunk_speedup", "ild_remat", f"ild_remat_chunk{chunk}")
     ratio("substep_chunk_speedup", "ild_substep", f"ild_substep_chunk{chunk}")
+    ratio("dots_forward_speedup", "forward", "forward_dots")
+    ratio("dots_substep_speedup", "ild_substep", "ild_substep_dots")
+    ratio("dots_substep_update_over_forward", "ild_substep_dots", "forward_dots")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
         for name in ("ild", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
                      f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
                                               / by["apg"]["env_steps_per_s"])
+    if "apg_dots" in by:  # like with like: both on the rewritten physics
+        for name in ("ild_dots", "ild_substep_dots"):
+            if name in by:
+                ratios[f"{name}_over_apg_dots"] = (by[name]["env_steps_per_s"]
+                                                   / by["apg_dots"]["env_steps_per_s"])
     print({k: round(v, 3) for k, v in ratios.items()}, flush=True)
     for r in rows:
         r.update({k: round(v, 3) for k, v in ratios.items()})

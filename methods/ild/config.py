@@ -82,6 +82,14 @@ class ILDConfig:
     instead of 2.018 on ant (1.518 with ant's `remat`), with 1/2 to 1/7 of the working
     memory (`python -m methods.ild.benchmark`, session 27, README ILD speed). Off by default:
     every recorded ILD cell ran without it (making it the default is a version bump)."""
+    small_dots: bool = False
+    """Compute the physics step's small matrix products as multiply-and-sum in the training
+    rollouts (`tasks.core.with_small_dots`): the same function and gradient to float32
+    round-off, faster where XLA's CPU backend runs a step as many tiny batched products:
+    swimmer's update with `substep_remat` took 0.651 s instead of 1.769 on one core at B = 32,
+    while the spring tasks' and acrobot's updates gained nothing (0.91-1.04x; `python -m
+    methods.ild.benchmark --rows forward,ild_substep,dots`, README ILD speed, session 29).
+    Off by default: every recorded ILD cell ran without it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without

@@ -20,7 +20,7 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
                                    make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
-from tasks.core import with_substep_remat, without_joint_limits
+from tasks.core import with_small_dots, with_substep_remat, without_joint_limits
 
 
 @flax.struct.dataclass
@@ -191,11 +191,14 @@ def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: flo
 
 def rollout_physics(task, config: ILDConfig):
     """The task the training rollouts differentiate through (evaluation always uses `task`):
-    without joint limits and/or with each physics substep rematerialized, as configured."""
+    without joint limits, with each physics substep rematerialized and/or with small matrix
+    products as multiply-and-sum, as configured."""
     if not config.joint_limits:
         task = without_joint_limits(task)
     if config.substep_remat:
         task = with_substep_remat(task)
+    if config.small_dots:
+        task = with_small_dots(task)
     return task
 
 

@@ -1,11 +1,13 @@
-"""One brax spring substep's VJP, piece by piece (session 28).
+"""One brax substep's VJP, piece by piece (spring: session 28; generalized: session 29).
 
     python results/substep/scripts/step_vjp_parts.py TASK [--batch 32]
 
-Forward and VJP (forward + backward, cotangent of ones) of each function brax's spring
-pipeline step calls, vmapped over B envs and jitted alone, on states 10 control steps in
-(contacts active): microseconds per call (min over 3 rounds of 100 calls) and VJP / forward.
-README ILD speed, session 28: no piece dominates and none is far past 3x.
+Forward and VJP (forward + backward, cotangent of ones) of each function brax's spring or
+generalized pipeline step calls, vmapped over B envs and jitted alone, on states 10 control
+steps in (contacts active): microseconds per call (min over 3 rounds of 100 calls) and
+VJP / forward, then one whole control step (all its substeps) the same way.
+README ILD speed: spring (session 28), no piece dominates and none is far past 3x;
+generalized (session 29), where swimmer's and acrobot's step goes.
 """
 from __future__ import annotations
 
@@ -14,6 +16,8 @@ import argparse
 import jax
 import jax.numpy as jnp
 from brax import actuator, com, kinematics
+from brax.generalized import constraint, dynamics, mass
+from brax.generalized import integrator as g_integrator
 from brax.spring import collisions, integrator, joints
 
 from methods.ild.benchmark import vjp_of_ones
@@ -21,23 +25,9 @@ from tasks import make_task
 from timing import best_seconds
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser()
-    p.add_argument("task")
-    p.add_argument("--batch", type=int, default=32)
-    a = p.parse_args(argv)
-    task = make_task(a.task)
-    env = task.env.unwrapped
-    if task.spec.backend != "spring":
-        p.error(f"{a.task} runs brax's {task.spec.backend!r} backend; this times 'spring'")
-    sys_ = env.sys
-    step = jax.jit(jax.vmap(env.step))
-    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), a.batch))
-    act = jnp.full((a.batch, task.action_size), 0.3)
-    for _ in range(10):
-        s = step(s, act)
-    ps = s.pipeline_state
-    parts = {
+def spring_parts(sys_) -> dict:
+    """brax.spring.pipeline.step's functions, each (pipeline_state, act) -> output."""
+    return {
         "inv_inertia": lambda p, u: com.inv_inertia(sys_, p.x),
         "actuator.to_tau": lambda p, u: actuator.to_tau(sys_, u, p.q, p.qd),
         "joints.resolve": lambda p, u: joints.resolve(sys_, p, actuator.to_tau(sys_, u, p.q,
@@ -48,13 +38,51 @@ def main(argv=None):
         "com.to_world": lambda p, u: com.to_world(sys_, p.x_i, p.xd_i),
         "kinematics.world_to_joint": lambda p, u: kinematics.world_to_joint(sys_, p.x, p.xd),
         "kinematics.inverse": lambda p, u: kinematics.inverse(sys_, p.j, p.jd),
-        "one whole substep": lambda p, u: env._pipeline.step(sys_, p, u),
     }
+
+
+def generalized_parts(sys_) -> dict:
+    """brax.generalized.pipeline.step's functions in its order, each (pipeline_state, act) ->
+    output; dynamics.forward split into its passive (springs, damping, fluid) and bias
+    (inverse dynamics) terms, and the constraint solve timed alone."""
+    return {
+        "actuator.to_tau": lambda p, u: actuator.to_tau(sys_, u, p.q, p.qd),
+        "dynamics._passive (fluid)": lambda p, u: dynamics._passive(sys_, p),
+        "dynamics.inverse (bias)": lambda p, u: dynamics.inverse(sys_, p),
+        "constraint.force (solver)": lambda p, u: constraint.force(sys_, p),
+        "integrator.integrate": lambda p, u: g_integrator.integrate(sys_, p),
+        "kinematics.forward": lambda p, u: kinematics.forward(sys_, p.q, p.qd),
+        "dynamics.transform_com": lambda p, u: dynamics.transform_com(sys_, p),
+        "mass.matrix_inv": lambda p, u: mass.matrix_inv(sys_, p, sys_.matrix_inv_iterations),
+        "constraint.jacobian": lambda p, u: constraint.jacobian(sys_, p),
+    }
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser()
+    p.add_argument("task")
+    p.add_argument("--batch", type=int, default=32)
+    a = p.parse_args(argv)
+    task = make_task(a.task)
+    env = task.env.unwrapped
+    if task.spec.backend not in ("spring", "generalized"):
+        p.error(f"{a.task} runs brax's {task.spec.backend!r} backend; this times 'spring' "
+                "and 'generalized'")
+    sys_ = env.sys
+    step = jax.jit(jax.vmap(env.step))
+    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), a.batch))
+    act = jnp.full((a.batch, task.action_size), 0.3)
+    for _ in range(10):
+        s = step(s, act)
+    ps = s.pipeline_state
+    parts = spring_parts(sys_) if task.spec.backend == "spring" else generalized_parts(sys_)
+    parts["one whole substep"] = lambda p, u: env._pipeline.step(sys_, p, u)
+    parts[f"one control step ({env._n_frames} substeps)"] = env.pipeline_step
     for name, fn in parts.items():
         vf = jax.vmap(fn)
         fwd = best_seconds(jax.jit(vf), ps, act, calls=100)
         back = best_seconds(jax.jit(vjp_of_ones(vf)), ps, act, calls=100)
-        print(f"{name:26s} forward {fwd * 1e6:8.1f} us   vjp {back * 1e6:8.1f} us   "
+        print(f"{name:34s} forward {fwd * 1e6:8.1f} us   vjp {back * 1e6:8.1f} us   "
               f"vjp / forward {back / fwd:5.2f}", flush=True)
 
 
