@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "substep", "scripts"))
-from timing import best_seconds  # noqa: E402
+from timing import best_seconds, forward_and_vjp_seconds, states_in  # noqa: E402
 
 from methods.ild.benchmark import vjp_of_ones  # noqa: E402
 from tasks import make_task  # noqa: E402
@@ -48,12 +48,7 @@ def main(argv=None):
     a = p.parse_args(argv)
     task = make_task(a.task)
     env = task.env.unwrapped
-    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), a.batch))
-    act = jnp.full((a.batch, task.action_size), 0.3)
-    step = jax.jit(jax.vmap(env.step))
-    for _ in range(10):
-        s = step(s, act)
-    ps = s.pipeline_state
+    ps, act = states_in(task, a.batch)
     if a.unroll_newton_schulz:
         from brax import math as bmath
         from brax.generalized import mass
@@ -73,9 +68,7 @@ def main(argv=None):
         float(jnp.max(jnp.abs(grads["brax"] - grads["small dots"]))
               / jnp.max(jnp.abs(grads["brax"])))))
     for k, f in forms.items():
-        vf = jax.vmap(f)
-        fw = best_seconds(jax.jit(vf), ps, act, calls=100)
-        bw = best_seconds(jax.jit(vjp_of_ones(vf)), ps, act, calls=100)
+        fw, bw = forward_and_vjp_seconds(f, ps, act)
         print(f"{k:10s} control step forward {fw * 1e6:8.1f} us  vjp {bw * 1e6:8.1f} us  "
               f"vjp / forward {bw / fw:.2f}", flush=True)
 

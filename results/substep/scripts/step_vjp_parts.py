@@ -13,16 +13,13 @@ from __future__ import annotations
 
 import argparse
 
-import jax
-import jax.numpy as jnp
 from brax import actuator, com, kinematics
 from brax.generalized import constraint, dynamics, mass
 from brax.generalized import integrator as g_integrator
 from brax.spring import collisions, integrator, joints
 
-from methods.ild.benchmark import vjp_of_ones
 from tasks import make_task
-from timing import best_seconds
+from timing import forward_and_vjp_seconds, states_in
 
 
 def spring_parts(sys_) -> dict:
@@ -69,19 +66,12 @@ def main(argv=None):
         p.error(f"{a.task} runs brax's {task.spec.backend!r} backend; this times 'spring' "
                 "and 'generalized'")
     sys_ = env.sys
-    step = jax.jit(jax.vmap(env.step))
-    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), a.batch))
-    act = jnp.full((a.batch, task.action_size), 0.3)
-    for _ in range(10):
-        s = step(s, act)
-    ps = s.pipeline_state
+    ps, act = states_in(task, a.batch)
     parts = spring_parts(sys_) if task.spec.backend == "spring" else generalized_parts(sys_)
     parts["one whole substep"] = lambda p, u: env._pipeline.step(sys_, p, u)
     parts[f"one control step ({env._n_frames} substeps)"] = env.pipeline_step
     for name, fn in parts.items():
-        vf = jax.vmap(fn)
-        fwd = best_seconds(jax.jit(vf), ps, act, calls=100)
-        back = best_seconds(jax.jit(vjp_of_ones(vf)), ps, act, calls=100)
+        fwd, back = forward_and_vjp_seconds(fn, ps, act)
         print(f"{name:34s} forward {fwd * 1e6:8.1f} us   vjp {back * 1e6:8.1f} us   "
               f"vjp / forward {back / fwd:5.2f}", flush=True)
 

@@ -20,3 +20,25 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
         best = min(best, (time.perf_counter() - t0) / calls)
     return best
 
+
+
+def states_in(task, batch: int, steps: int = 10, action: float = 0.3):
+    """(pipeline_state, actions) of `batch` envs of brax task `task`, `steps` control steps
+    after reset under the constant `action` (contacts active): where the step scripts time."""
+    import jax.numpy as jnp
+    env = task.env.unwrapped
+    step = jax.jit(jax.vmap(env.step))
+    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
+    act = jnp.full((batch, task.action_size), action)
+    for _ in range(steps):
+        s = step(s, act)
+    return s.pipeline_state, act
+
+
+def forward_and_vjp_seconds(f, *args, calls: int = 100) -> tuple[float, float]:
+    """Seconds per call of jit(vmap(f)) and of its VJP with a cotangent of ones
+    (`methods.ild.benchmark.vjp_of_ones`), each by `best_seconds`."""
+    from methods.ild.benchmark import vjp_of_ones
+    vf = jax.vmap(f)
+    return (best_seconds(jax.jit(vf), *args, calls=calls),
+            best_seconds(jax.jit(vjp_of_ones(vf)), *args, calls=calls))
