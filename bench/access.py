@@ -35,7 +35,9 @@ class NoSimGradient(Wrapper):
 
 
 class TaskView:
-    """The task as a method sees it: `env` is gated; the rest is plain task information."""
+    """The task as a method sees it: `env` is gated; the rest is plain task information.
+    A copy a method makes of it with a `tasks.core` transform (`without_joint_limits`,
+    `with_substep_remat`, `with_small_dots`) comes back behind the same gates (`regated`)."""
 
     def __init__(self, task: Task, uses: Uses, method: str):
         env = task.env
@@ -51,7 +53,13 @@ class TaskView:
         self.action_size = task.action_size
         self.state_size = task.state_size
         self.matched_state = task.matched_state
+        self._uses = uses
         self._method = method
+
+    def regated(self, task: Task) -> "TaskView":
+        """`task` (a copy built from this view's spec) behind this view's gates: the
+        transforms build a fresh env from the spec, which would otherwise drop them."""
+        return TaskView(task, self._uses, self._method)
 
 
 class DemoView:

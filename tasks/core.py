@@ -166,6 +166,15 @@ def task_with_backend(name: str, backend: str) -> Task:
     return Task(spec=spec, env=build_env(spec))
 
 
+def _like(given, copy: Task):
+    """`copy` of `given` gated as `given` was: a method's task is a gated view
+    (bench.access.TaskView: reward hidden, physics gradient cut, as its Uses declare) and the
+    transforms below build a fresh env from the spec, which would hand the method an ungated
+    one."""
+    regated = getattr(given, "regated", None)
+    return copy if regated is None else regated(copy)
+
+
 def without_joint_limits(task: Task) -> Task:
     """A fresh copy of brax task `task` with its joint-range constraints removed (`sys.dof.limit
     = None`; the registry's cached task is left as it is). brax's generalized backend solves
@@ -178,7 +187,7 @@ def without_joint_limits(task: Task) -> Task:
         raise ValueError(f"task {task.name!r} has no brax joint limits to remove "
                          "(this is for brax tasks with limited joints)")
     inner.sys = inner.sys.replace(dof=dof.replace(limit=None))
-    return Task(spec=task.spec, env=env)
+    return _like(task, Task(spec=task.spec, env=env))
 
 
 def with_substep_remat(task: Task) -> Task:
@@ -210,7 +219,7 @@ def with_substep_remat(task: Task) -> Task:
         return jax.lax.scan(substep, pipeline_state, (), inner._n_frames)[0]
 
     inner.pipeline_step = pipeline_step  # the instance's; brax's step calls self.pipeline_step
-    return Task(spec=task.spec, env=env)
+    return _like(task, Task(spec=task.spec, env=env))
 
 
 def with_small_dots(task: Task) -> Task:
@@ -230,7 +239,7 @@ def with_small_dots(task: Task) -> Task:
                          "(small_dots is for brax PipelineEnv tasks; leave it False)")
     inner.sys = given.sys
     inner.pipeline_step = small_dots_as_sums(given.pipeline_step)
-    return Task(spec=task.spec, env=env)
+    return _like(task, Task(spec=task.spec, env=env))
 
 
 @functools.lru_cache(maxsize=None)

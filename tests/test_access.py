@@ -36,13 +36,13 @@ def test_undeclared_demo_fields_raise():
         dv.obs
 
 
-def _grad_through_env(env):
+def _grad_through_env(env, actions=0.5 * jnp.ones((5, 1))):
     s0 = env.reset(jax.random.PRNGKey(0))
 
     def f(a):
         s, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), s0, a)
         return s.obs[0]
-    return jax.grad(f)(0.5 * jnp.ones((5, 1)))
+    return jax.grad(f)(actions)
 
 
 def test_no_sim_gradients_without_the_declaration():
@@ -50,3 +50,30 @@ def test_no_sim_gradients_without_the_declaration():
     assert float(jnp.abs(_grad_through_env(tv.env)).sum()) == 0.0
     tv, _ = _view(Uses(sim_gradients=True))
     assert float(jnp.abs(_grad_through_env(tv.env)).sum()) > 0.0
+
+
+def test_a_transformed_view_keeps_its_gates():
+    """tasks.core's transforms build a fresh env from the task's spec; handed a method's view
+    they must hand back one gated the same way, or a method using them (ILD's substep_remat,
+    small_dots, joint_limits=False) would see the true reward and the physics gradient its
+    Uses withheld."""
+    from tasks.core import Task, with_small_dots, with_substep_remat, without_joint_limits
+    task = make_task("acrobot")
+    a = 0.5 * jnp.ones((2, task.action_size))
+    for transform in (with_substep_remat, with_small_dots,
+                      lambda t: with_small_dots(with_substep_remat(t))):
+        assert isinstance(transform(task), Task)  # a plain task stays plain
+        hidden = transform(TaskView(task, Uses(demo_states=True), "m"))
+        assert isinstance(hidden, TaskView)
+        s = hidden.env.step(hidden.env.reset(jax.random.PRNGKey(0)), a[0])
+        assert np.isnan(s.reward) and s.metrics == {}
+        cut = transform(TaskView(task, Uses(true_reward=True), "m"))
+        assert np.isfinite(cut.env.reset(jax.random.PRNGKey(0)).reward)
+        g = _grad_through_env(cut.env, a)
+        assert float(jnp.abs(g).sum()) == 0.0
+        g = _grad_through_env(transform(TaskView(task, Uses(sim_gradients=True), "m")).env, a)
+        assert float(jnp.abs(g).sum()) > 0.0
+    limited = make_task("inverted_pendulum")
+    free = without_joint_limits(TaskView(limited, Uses(), "m"))
+    assert isinstance(free, TaskView) and free.env.unwrapped.sys.dof.limit is None
+    assert np.isnan(free.env.reset(jax.random.PRNGKey(0)).reward)

@@ -1,5 +1,6 @@
 """CEM-MPC: reaches the goal on pointmass, deterministic for a fixed seed, honest about the
 simulator at test time, and the tracking variant reads no reward."""
+import dataclasses
 import importlib
 import sys
 
@@ -172,3 +173,34 @@ def test_tracking_never_prefers_ending_the_episode():
     d = np.array([-0.45, 0.0]) - x0
     assert score_hold == pytest.approx(-40 * float(d @ d), rel=1e-5)
     assert score_end < score_hold
+
+
+def test_small_dots_plans_on_the_rewritten_physics_to_the_same_action():
+    """`small_dots=True` hands the planner `tasks.core.with_small_dots`'s copy of the physics
+    (gated like the task it was given); the plan is the same to float32 round-off."""
+    from types import SimpleNamespace
+
+    from bench.access import TaskView
+    from bench.api import Uses
+    task = make_task("acrobot")
+    view = TaskView(task, Uses(true_reward=True, sim_at_test=True), "cem_mpc")
+    cfg = CEMConfig(population=16, elites=4, iterations=2, horizon=4)
+    s = task.env.reset(jax.random.PRNGKey(0))
+    actions = []
+    for small_dots in (False, True):
+        policy = cem.train(view, None, dataclasses.replace(cfg, small_dots=small_dots),
+                           SimpleNamespace(log=lambda s: None), seed=0).policy
+        planner_env = policy.act.__self__.env
+        assert ("pipeline_step" in vars(planner_env.unwrapped)) == small_dots
+        a, _ = policy.act((), s, jax.random.PRNGKey(1), True, policy.init_memory((), None))
+        actions.append(np.asarray(a))
+    np.testing.assert_allclose(actions[1], actions[0], atol=1e-4)
+
+
+def test_small_dots_on_a_task_without_brax_physics_fails_the_run_by_name(store):
+    req = RunRequest(method="cem_mpc", task="pointmass", seed=0, budget=Budget(seconds=60),
+                     preset="cpu", overrides={"small_dots": True},
+                     eval=EvalConfig(num_episodes=2))
+    rec, _ = execute(prepare(req), store, log=lambda s: None)
+    assert rec["status"] == "failed"
+    assert "pointmass" in rec["message"] and "small_dots" in rec["message"]

@@ -141,3 +141,33 @@ def test_shac_improves_pointmass_return_within_a_small_budget(store):
     # Untrained (zero force) already scores about the expert's -20.6 on this task; SHAC on
     # the true reward must beat the PD expert clearly (measured: -21.9 -> -14.2).
     assert rec["final_return"] > first + 5 and rec["final_normalized"] > 1.02, (first, rec)
+
+
+def test_small_dots_trains_on_the_rewritten_physics_behind_the_same_gates(monkeypatch):
+    """`small_dots=True`: the agent is built on `tasks.core.with_small_dots`'s copy of the
+    physics (the same function and gradient: tests/test_small_dots.py), still gated as the
+    method's view was; the task itself (which evaluation runs) is left as it is."""
+    from bench.access import TaskView
+    from bench.api import Uses
+    built = []
+
+    class Stop(Exception):
+        pass
+
+    def capture(env, *args):
+        built.append(env)
+        raise Stop
+
+    monkeypatch.setattr(shac, "SHAC", capture)
+    task = make_task("acrobot")
+    view = TaskView(task, Uses(true_reward=True, sim_gradients=True), "shac")
+    for small_dots in (False, True):
+        with pytest.raises(Stop):
+            shac.train(view, None, SHACConfig(small_dots=small_dots), None, seed=0)
+    plain, fast = built
+    assert plain is view.env and "pipeline_step" not in vars(task.env.unwrapped)
+    assert "pipeline_step" in vars(fast.unwrapped) and fast.unwrapped.sys is task.env.unwrapped.sys
+    hidden = TaskView(task, Uses(sim_gradients=True), "shac")
+    with pytest.raises(Stop):
+        shac.train(hidden, None, SHACConfig(small_dots=True), None, seed=0)
+    assert np.isnan(built[-1].reset(jax.random.PRNGKey(0)).reward)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 
 from bench.api import Policy, TrainResult
 from methods.cem_mpc.config import CEMConfig
+from tasks.core import with_small_dots
 
 
 class CEMPlanner:
@@ -87,6 +88,8 @@ class CEMPlanner:
 
 
 def train(task, demo, config: CEMConfig, ctx, seed: int) -> TrainResult:
+    if config.small_dots:  # the planner's model only: the test episodes run the task itself
+        task = with_small_dots(task)
     kwargs = {}
     if config.objective == "track":
         states = jnp.asarray(demo.states[0])                      # s_0..s_T
