@@ -11,7 +11,6 @@ iterations x horizon simulated steps), as its `train` measures and records it
 """
 import argparse
 import dataclasses
-import importlib
 import sys
 import time
 from types import SimpleNamespace
@@ -54,9 +53,8 @@ def main():
     ap.add_argument("task")
     ap.add_argument("--epochs", type=int, default=5)
     args = ap.parse_args()
-    for m in ("methods.shac", "methods.cem_mpc"):
-        importlib.import_module(m)
     task = make_task(args.task)
+    # get_method loads the in-repo methods, so their train modules are in sys.modules.
     shac_cfg = build_config(get_method("shac"), args.task, "cpu", {})
     cem_cfg = build_config(get_method("cem_mpc"), args.task, "cpu", {})
     shac = {d: shac_epoch_seconds(task, dataclasses.replace(shac_cfg, small_dots=d), args.epochs)

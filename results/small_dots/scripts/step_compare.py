@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "substep", "scripts"))
-from timing import best_seconds, forward_and_vjp_seconds, states_in  # noqa: E402
+from timing import best_seconds, print_forward_and_vjp, states_in  # noqa: E402
 
 from methods.ild.benchmark import vjp_of_ones  # noqa: E402
 from tasks import make_task  # noqa: E402
@@ -67,10 +67,8 @@ def main(argv=None):
         float(jnp.max(jnp.abs(out["brax"].qd - out["small dots"].qd))),
         float(jnp.max(jnp.abs(grads["brax"] - grads["small dots"]))
               / jnp.max(jnp.abs(grads["brax"])))))
-    for k, f in forms.items():
-        fw, bw = forward_and_vjp_seconds(f, ps, act)
-        print(f"{k:10s} control step forward {fw * 1e6:8.1f} us  vjp {bw * 1e6:8.1f} us  "
-              f"vjp / forward {bw / fw:.2f}", flush=True)
+    print_forward_and_vjp({f"{k} control step": f for k, f in forms.items()}, ps, act,
+                          width=24)
 
 
 if __name__ == "__main__":

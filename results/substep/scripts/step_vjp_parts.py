@@ -19,7 +19,7 @@ from brax.generalized import integrator as g_integrator
 from brax.spring import collisions, integrator, joints
 
 from tasks import make_task
-from timing import forward_and_vjp_seconds, states_in
+from timing import print_forward_and_vjp, states_in
 
 
 def spring_parts(sys_) -> dict:
@@ -70,10 +70,7 @@ def main(argv=None):
     parts = spring_parts(sys_) if task.spec.backend == "spring" else generalized_parts(sys_)
     parts["one whole substep"] = lambda p, u: env._pipeline.step(sys_, p, u)
     parts[f"one control step ({env._n_frames} substeps)"] = env.pipeline_step
-    for name, fn in parts.items():
-        fwd, back = forward_and_vjp_seconds(fn, ps, act)
-        print(f"{name:34s} forward {fwd * 1e6:8.1f} us   vjp {back * 1e6:8.1f} us   "
-              f"vjp / forward {back / fwd:5.2f}", flush=True)
+    print_forward_and_vjp(parts, ps, act)
 
 
 if __name__ == "__main__":

@@ -42,3 +42,12 @@ def forward_and_vjp_seconds(f, *args, calls: int = 100) -> tuple[float, float]:
     vf = jax.vmap(f)
     return (best_seconds(jax.jit(vf), *args, calls=calls),
             best_seconds(jax.jit(vjp_of_ones(vf)), *args, calls=calls))
+
+
+def print_forward_and_vjp(forms: dict, *args, width: int = 34) -> None:
+    """For each name -> f in `forms`: `forward_and_vjp_seconds(f, *args)` printed as one line
+    (microseconds forward, as a VJP, and their ratio)."""
+    for name, f in forms.items():
+        fwd, back = forward_and_vjp_seconds(f, *args)
+        print(f"{name:{width}s} forward {fwd * 1e6:8.1f} us   vjp {back * 1e6:8.1f} us   "
+              f"vjp / forward {back / fwd:5.2f}", flush=True)
