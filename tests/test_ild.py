@@ -90,6 +90,9 @@ class _ModePolicy(TanhGaussianPolicy):
     def sample(self, params, obs, key):
         return self.mode(params, obs)
 
+    def sample_batch(self, params, obs, keys, kernels_t):  # ILD's rollout (the default)
+        return self.mode(params, obs)
+
 
 def _setup(config, dtype=jnp.float32, deterministic=False):
     task = make_task("pointmass")
@@ -222,6 +225,63 @@ def test_remat_computes_the_same_loss_and_gradient():
     assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
 
 
+def test_sample_batch_is_vmapped_sample_with_the_same_gradient():
+    """TanhGaussianPolicy.sample_batch (transposed_backward) draws the same actions as
+    vmap(sample) from the same keys, bit for bit, and its custom backward (dense_t: the
+    kernels' transposes made once, the kernel's cotangent one product over every leading
+    axis) gives autodiff's gradient in params and obs."""
+    from methods.common.policy import dense_t
+    policy = TanhGaussianPolicy(5, 2, (16, 8))
+    params = policy.init(jax.random.PRNGKey(0), ObsNorm(jnp.full(5, 0.1), jnp.full(5, 2.0)))
+    obs = jax.random.normal(jax.random.PRNGKey(1), (6, 5))
+    keys = jax.random.split(jax.random.PRNGKey(2), 6)
+    w = jax.random.normal(jax.random.PRNGKey(3), (6, 2))
+    vmapped = jax.vmap(policy.sample, in_axes=(None, 0, 0))
+
+    def loss(p, o, batch):
+        a = (policy.sample_batch(p, o, keys, policy.kernels_t(p)) if batch
+             else vmapped(p, o, keys))
+        return jnp.sum(jnp.sin(3 * a) * w)
+
+    np.testing.assert_array_equal(policy.sample_batch(params, obs, keys,
+                                                      policy.kernels_t(params)),
+                                  vmapped(params, obs, keys))
+    ref, new = (jax.grad(loss, argnums=(0, 1))(params, obs, b) for b in (False, True))
+    for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(new)):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
+    assert float(jnp.abs(new[0]["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
+    # dense_t on a (2, 3, 4) input: kernel's cotangent sums over both leading axes
+    x = jax.random.normal(jax.random.PRNGKey(4), (2, 3, 4))
+    k = jax.random.normal(jax.random.PRNGKey(5), (4, 7))
+    g = jax.random.normal(jax.random.PRNGKey(6), (2, 3, 7))
+    new = jax.vjp(lambda x, k: dense_t(x, k, k.T), x, k)[1](g)
+    ref = jax.vjp(lambda x, k: x @ k, x, k)[1](g)
+    for a, b in zip(ref, new):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
+
+
+def test_transposed_backward_computes_the_same_loss_and_gradient():
+    """transposed_backward=True (the default) runs the rollout's policy as one batched sample_batch per
+    step: the same loss and gradient (per-step gradient normalization and truncation in the
+    path), with the kernels transposed once, outside the scan."""
+    out, jaxprs = {}, {}
+    for t in (False, True):
+        loss, params, keys = _setup(_cfg(transposed_backward=t, truncation=10))
+        f = jax.value_and_grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0])
+        out[t] = jax.jit(f)(params)
+        jaxprs[t] = jax.make_jaxpr(f)(params)
+    assert float(out[False][0]) == pytest.approx(float(out[True][0]), rel=1e-6)
+    for a, b in zip(jax.tree_util.tree_leaves(out[False][1]),
+                    jax.tree_util.tree_leaves(out[True][1])):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
+    assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
+    # the kernels' transposes, (32, 2), (32, 32) and (2, 32), made once outside the scans
+    def transposed(j):
+        return [e.outvars[0].aval.shape for e in j.jaxpr.eqns if e.primitive.name == "transpose"]
+    assert [(32, 2), (32, 32), (2, 32)] == [s for s in transposed(jaxprs[True]) if 32 in s]
+    assert not [s for s in transposed(jaxprs[False]) if 32 in s]
+
+
 def test_chunk_runs_the_same_updates_as_one_per_call():
     """chunk=K (K updates in one jitted call, as the trainer and the speed benchmark's
     ild_chunkK rows run them, and as brax's APG scans an epoch) is a call structure, not a
@@ -336,7 +396,8 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
     rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=3)
     by = {r["what"]: r for r in rows}
     assert {"forward", "ild", "ild_no_gn", "ild_remat", "ild_chunk3", "ild_remat_chunk3",
-            "chamfer", "step_forward", "step_vjp", "policy_forward", "policy_vjp"} <= set(by)
+            "ild_untransposed", "chamfer", "step_forward", "step_vjp", "policy_forward",
+            "policy_vjp"} <= set(by)
     r = rows[0]
     # chunk rows: 3 updates per call, seconds and env-steps/s per update
     assert by["ild_chunk3"]["updates_per_call"] == 3 and by["ild"]["updates_per_call"] == 1
@@ -344,6 +405,8 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
         4 * 128 / by["ild_chunk3"]["seconds"], rel=0.02)
     assert r["chunk_speedup"] == pytest.approx(
         by["ild"]["seconds"] / by["ild_chunk3"]["seconds"], rel=0.02, abs=2e-3)
+    assert r["transposed_speedup"] == pytest.approx(
+        by["ild_untransposed"]["seconds"] / by["ild"]["seconds"], rel=0.02, abs=2e-3)
     assert r["update_over_forward"] == pytest.approx(
         by["ild"]["seconds"] / by["forward"]["seconds"], rel=0.02, abs=2e-3)
     assert r["step_vjp_over_forward"] == pytest.approx(
@@ -611,3 +674,35 @@ def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     assert list(rows.what) == ["forward", "forward"]
     assert rows.xla_flags.isna().tolist() == [True, False]
     assert rows.xla_flags.iloc[1] == "--xla_cpu_use_fusion_emitters=false"
+
+
+def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
+    """methods.ild.paired: every variant is timed once between two of APG's epochs and
+    each round's ratio is APG's seconds per update over the variant's, from that round."""
+    from methods.ild import paired
+    calls = []
+
+    def fake_apg(task, batch, hidden, updates, epochs, after_epoch):
+        for it in range(1, epochs + 1):  # brax reports every epoch, the first compiled
+            calls.append(it)
+            after_epoch(it)
+        return [batch * 128 / s for s in (0.5, 0.25)]  # the epochs after the first: 2 rounds
+
+    monkeypatch.setattr(paired, "apg_epochs", fake_apg)
+    monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 1.0)
+    rows = paired.run("pointmass", ["chunk=2", "remat"], batch=4, rounds=2, repeats=3)
+    assert calls == [1, 2, 3]
+    assert [(r["variant"], r["round"]) for r in rows] == [
+        ("chunk=2", 0), ("chunk=2", 1), ("remat", 0), ("remat", 1)]
+    for r in rows:
+        assert r["apg_seconds"] == (0.5, 0.25)[r["round"]]
+        assert r["over_apg"] == pytest.approx(r["apg_seconds"] / r["seconds"], rel=2e-3)
+        assert 0 < r["seconds"] < 10
+    cfg = paired.parse_variant("substep_remat,chunk=4,truncation=5", 8)
+    assert (cfg.substep_remat, cfg.chunk, cfg.truncation, cfg.num_envs) == (True, 4, 5, 8)
+    from bench.plugins import ConfigError
+    with pytest.raises(ConfigError, match="no config field 'nope'"):
+        paired.parse_variant("nope", 8)
+    monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 0.0)
+    with pytest.raises(ValueError, match="'pointmass'.*no gradient"):
+        paired.run("pointmass", ["chunk=2"], batch=4, rounds=1, repeats=1)

@@ -36,6 +36,29 @@ class ObsNorm:
 jax.tree_util.register_dataclass(ObsNorm, data_fields=["mean", "std"], meta_fields=[])
 
 
+@jax.custom_vjp
+def dense_t(x: jax.Array, kernel: jax.Array, kernel_t: jax.Array) -> jax.Array:
+    """x @ kernel (flax Dense's product) for x of shape (..., in), whose backward computes
+    x's cotangent as g @ kernel_t, with kernel_t = kernel.T made once outside the rollout's
+    loop (it gets no cotangent), and kernel's as one product over all leading axes of x.
+    XLA's CPU backend runs g @ kernel.T, the product reverse mode otherwise emits, at about
+    half the speed of g @ kernel_t (32x256 by 256x512: 233 vs 104 us; README ILD speed)."""
+    return jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
+
+
+def _dense_t_fwd(x, kernel, kernel_t):
+    return dense_t(x, kernel, kernel_t), (x, kernel_t)
+
+
+def _dense_t_bwd(res, g):
+    x, kernel_t = res
+    d_kernel = jax.lax.dot_general(x, g, ((tuple(range(x.ndim - 1)),) * 2, ((), ())))
+    return g @ kernel_t, d_kernel, None
+
+
+dense_t.defvjp(_dense_t_fwd, _dense_t_bwd)
+
+
 @dataclasses.dataclass(frozen=True)
 class TanhGaussianPolicy:
     obs_size: int
@@ -61,6 +84,31 @@ class TanhGaussianPolicy:
         # got gradients, and BC's 1000 Adam steps moved hopper's std floor of 1.0 to 0.81).
         norm = jax.lax.stop_gradient(params["norm"])
         return self._net.apply(None, params["net"], norm(obs))
+
+    def kernels_t(self, params: dict) -> tuple[jax.Array, ...]:
+        """The network's kernels transposed, without gradient: `sample_batch`'s fast backward
+        (make them once, outside a rollout's loop)."""
+        layers = params["net"]["params"]
+        return tuple(jax.lax.stop_gradient(layers[f"hidden_{i}"]["kernel"].T)
+                     for i in range(len(layers)))
+
+    def sample_batch(self, params: dict, obs: jax.Array, keys: jax.Array,
+                     kernels_t: tuple[jax.Array, ...]) -> jax.Array:
+        """`sample` for a batch: obs (B, obs_size), keys (B, 2) -> (B, action_size), the
+        same values as vmap(sample); the network's products run through `dense_t`, so the
+        backward reads `kernels_t` (from `kernels_t(params)`) instead of transposing every
+        kernel at every step. Batched on purpose: under vmap, the kernels' cotangents would
+        be made per example and then summed."""
+        layers = params["net"]["params"]
+        x = jax.lax.stop_gradient(params["norm"])(obs)
+        for i, kt in enumerate(kernels_t):
+            layer = layers[f"hidden_{i}"]
+            x = dense_t(x, layer["kernel"], kt) + layer["bias"]
+            if i < len(kernels_t) - 1:
+                x = linen.swish(x)
+        d = self._dist
+        return jax.vmap(lambda lg, k: d.postprocess(d.sample_no_postprocessing(lg, k)))(
+            x, keys)
 
     def sample(self, params: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
         """Reparameterized tanh-Gaussian sample (differentiable in params and obs)."""

@@ -18,6 +18,10 @@ rows:
                forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
                (brax's APG on the same rewritten physics, so the ILD / APG ratio compares
                like with like)
+  untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
+               vmapped per env, flax's backward transposing each kernel at every step
+               (before session 31 every row ran so: ILD's default now reads the kernels
+               transposed once per update, the same gradient bit for bit)
   ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
                own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
@@ -27,6 +31,8 @@ rows:
   step_forward, step_vjp      ONE physics step of B envs, forward / forward + backward
   policy_forward, policy_vjp  one policy sample for B envs, forward / forward + backward
                (their env-steps/s count B steps per call)
+  policy_vjp_transposed       the same VJP as ILD's rollout runs it by default (batched,
+               the kernels' transposes made beforehand: `transposed_backward`)
   apg          brax's own APG trainer (brax.training.agents.apg), horizon 128, same network;
                its steady-state 'training/sps' (its second epoch, `--repeats` updates in
                one jitted scan; the first epoch compiles); left
@@ -101,7 +107,11 @@ def vjp_of_ones(f):
     return vjp
 
 
-def _apg_sps(task, batch, hidden, repeats):
+def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None):
+    """brax's own APG trainer (horizon 128, our network) for `epochs` epochs of `updates`
+    updates (brax times an epoch as one jitted scan; the first compiles): the steady-state
+    'training/sps' of each epoch after the first. `after_epoch(it)` runs between epochs,
+    outside brax's timing (methods.ild.paired times ILD's updates there)."""
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as apg
     from flax import linen
@@ -113,15 +123,22 @@ def _apg_sps(task, batch, hidden, repeats):
                                               preprocess_observations_fn, hidden, linen.swish,
                                               layer_norm=False)
 
-    # Two epochs of `repeats` updates each (brax times an epoch as one jitted scan): the
-    # first compiles, the second is timed over `repeats` updates, as ILD's rows are.
+    def progress(it, m):
+        if "training/sps" in m:
+            sps.append(float(m["training/sps"]))
+            after_epoch(it)
+
     apg.train(environment=task.env, episode_length=task.episode_length,
-              policy_updates=2 * repeats, horizon_length=task.episode_length,
-              num_envs=batch, num_evals=3,
-              num_eval_envs=batch, network_factory=factory,
-              progress_fn=lambda it, m: sps.append(float(m["training/sps"]))
-              if "training/sps" in m else None)
-    return sps[-1]  # the second epoch: compiled already
+              policy_updates=epochs * updates, horizon_length=task.episode_length,
+              num_envs=batch, num_evals=epochs + 1,
+              num_eval_envs=batch, network_factory=factory, progress_fn=progress)
+    return sps[1:]
+
+
+def _apg_sps(task, batch, hidden, repeats):
+    # Two epochs of `repeats` updates each: the first compiles, the second is timed over
+    # `repeats` updates, as ILD's rows are.
+    return apg_epochs(task, batch, hidden, repeats, 2)[-1]
 
 
 def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
@@ -139,7 +156,8 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
 
 
 ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_both", "ild_chunk",
-        "ild_remat_chunk", "ild_substep_chunk", "dots", "step", "policy", "chamfer", "apg")
+        "ild_remat_chunk", "ild_substep_chunk", "dots", "untransposed", "step", "policy",
+        "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs)."""
 
@@ -214,7 +232,11 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
             ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk),
             ("dots", "ild_dots", dots, 1),
-            ("dots", "ild_substep_dots", dataclasses.replace(substep, small_dots=True), 1)):
+            ("dots", "ild_substep_dots", dataclasses.replace(substep, small_dots=True), 1),
+            ("untransposed", "ild_untransposed",
+             dataclasses.replace(base, transposed_backward=False), 1),
+            ("untransposed", "ild_substep_untransposed",
+             dataclasses.replace(substep, transposed_backward=False), 1)):
         if (n > 1 and chunk == 1) or group not in only:
             continue
         try:
@@ -245,6 +267,10 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         row("policy_forward", _time(sample, (params, s0.obs, pkeys), 5 * repeats), batch)
         row("policy_vjp", _time(vjp_of_ones(lambda p, o: sample(p, o, pkeys)),
                                 (params, s0.obs), 5 * repeats), batch)
+        kernels_t = policy.kernels_t(params)  # made once per update, outside the loop
+        row("policy_vjp_transposed", _time(vjp_of_ones(
+            lambda p, o: policy.sample_batch(p, o, pkeys, kernels_t)), (params, s0.obs),
+            5 * repeats), batch)
     if "chamfer" in only:
         x = jax.random.normal(k[3], (batch, T, task.state_size))
         cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
@@ -280,12 +306,15 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("chunk_speedup", "ild", f"ild_chunk{chunk}")
     ratio("remat_chunk_speedup", "ild_remat", f"ild_remat_chunk{chunk}")
     ratio("substep_chunk_speedup", "ild_substep", f"ild_substep_chunk{chunk}")
+    ratio("transposed_speedup", "ild_untransposed", "ild")
+    ratio("transposed_substep_speedup", "ild_substep_untransposed", "ild_substep")
     ratio("dots_forward_speedup", "forward", "forward_dots")
     ratio("dots_substep_speedup", "ild_substep", "ild_substep_dots")
     ratio("dots_substep_update_over_forward", "ild_substep_dots", "forward_dots")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
         for name in ("ild", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
-                     f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}"):
+                     f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
+                     "ild_untransposed", "ild_substep_untransposed"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
                                               / by["apg"]["env_steps_per_s"])

@@ -90,6 +90,16 @@ class ILDConfig:
     while the spring tasks' and acrobot's updates gained nothing (0.91-1.04x; `python -m
     methods.ild.benchmark --rows forward,ild_substep,dots`, README ILD speed, session 29).
     Off by default: every recorded ILD cell ran without it."""
+    transposed_backward: bool = True
+    """The rollout's policy runs as one batched `TanhGaussianPolicy.sample_batch` per step,
+    whose backward reads the kernels transposed once per update instead of transposing each
+    at every step (XLA's CPU backend runs that per-step product at half speed). The same
+    function and, measured here, the same loss and gradient bit for bit on pointmass and all
+    8 brax tasks at B = 8, so recorded cells are unchanged; an update
+    is 1.04-1.11x faster on acrobot, hopper and reacher (acrobot most: its policy is a third
+    of a step's cost) and about as fast on walker2d and ant, whose physics dominate (README
+    ILD speed, session 31, `python -m methods.ild.paired`). False: the policy vmapped per
+    env, flax's backward."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without

@@ -66,10 +66,17 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     def loss_fn(params, key, init_keys):
         k_act = key
         s0 = jax.vmap(env.reset)(init_keys)
+        # Made once here, outside the loop: the policy's backward then reads them as they are.
+        kernels_t = policy.kernels_t(params) if config.transposed_backward else None
 
         def body(s, xs):
             t, k = xs
-            s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, jax.random.split(k, B))
+            keys = jax.random.split(k, B)
+            if kernels_t is None:
+                s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, keys)
+            else:  # the same values as env_step's: the same per-env keys
+                a = jax.vmap(gn)(policy.sample_batch(params, s.obs, keys, kernels_t))
+                s2 = jax.vmap(lambda s, a: gn(env.step(s, a)))(s, a)
             m = jax.vmap(task.matched_state)(s2)
             cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)

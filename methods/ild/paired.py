@@ -1,0 +1,108 @@
+"""ILD's update against brax's APG, interleaved in one process so that both see the same
+machine: APG trains epochs of `--repeats` updates (brax times each epoch itself), and
+between two epochs each ILD variant is timed over `--repeats` updates. One row per variant
+and round; the summary is the median over rounds of each variant's seconds per update and
+of its per-round env-steps/s over APG's (the benchmark's single APG epoch per process swung
+by up to 10% between runs on this 2-core VM, which the 1.2x target cannot absorb):
+
+    python -m methods.ild.paired --task acrobot --rounds 6 \\
+        --variant substep_remat,chunk=4 --variant substep_remat,transposed_backward,chunk=4
+
+A variant is comma-separated ILDConfig fields (a bare name sets a bool field True); its
+`chunk` is the updates per jitted call, as the trainer runs them.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import jax
+
+from bench.plugins import ConfigError, build_config, get_method
+from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup
+from methods.ild.config import ILDConfig
+from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
+from tasks import make_task
+
+
+def parse_variant(text: str, batch: int) -> ILDConfig:
+    """'substep_remat,chunk=4' -> ILDConfig(num_envs=batch, substep_remat=True, chunk=4)
+    (the paper's defaults otherwise, as the benchmark's rows; no per-task overrides)."""
+    fields = dict(p.partition("=")[::2] if "=" in p else (p, "true")
+                  for p in text.split(",") if p)
+    return build_config(get_method("ild"), task="", overrides={"num_envs": batch, **fields})
+
+
+def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
+        repeats: int = 8) -> list[dict]:
+    task = make_task(task_name)
+    if reward_gradient_norm(task) == 0.0:
+        raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
+                         "would time a forward rollout; pick a task with a reward gradient")
+    base = ILDConfig(num_envs=batch)
+    configs = {v: parse_variant(v, batch) for v in variants}
+    policy, goals, norm, params, k = speed_setup(task, base)
+    steps = batch * task.episode_length
+    timed = {}
+    for v, cfg in configs.items():  # compile every variant before anything is timed
+        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg, k[2])
+        chunk = make_chunk(update, cfg.chunk)
+        state = initial_state(params, opt, k[3], cfg)
+        n = jax.numpy.int32(cfg.chunk)
+        jax.block_until_ready(chunk(state, n))
+        timed[v] = (chunk, state, n, -(-repeats // cfg.chunk) * cfg.chunk)
+    seconds = {v: [] for v in variants}
+
+    def time_ild(_):
+        for v, (chunk, state, n, total) in timed.items():
+            t0 = time.perf_counter()
+            for _ in range(total // configs[v].chunk):
+                state = chunk(state, n)[0]
+            jax.block_until_ready(state)
+            seconds[v].append((time.perf_counter() - t0) / total)
+
+    sps = apg_epochs(task, batch, base.hidden, repeats, rounds + 1, time_ild)
+    apg_s = [steps / x for x in sps]
+    ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
+    flags = os.environ.get("XLA_FLAGS") or None
+    rows = []
+    for v in variants:
+        for r, (s, a) in enumerate(zip(ild[v], apg_s)):
+            rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
+                         "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
+                         "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
+                         "xla_flags": flags})
+    for v in variants:
+        ratios = [a / s for s, a in zip(ild[v], apg_s)]
+        print(f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "
+              f"{statistics.median(apg_s):.4f}), over APG median {statistics.median(ratios):.3f} "
+              f"[{min(ratios):.3f}, {max(ratios):.3f}] over {len(ratios)} rounds", flush=True)
+    return rows
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--task", default="acrobot")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--rounds", type=int, default=6)
+    p.add_argument("--repeats", type=int, default=8, help="updates per APG epoch and per "
+                   "ILD block")
+    p.add_argument("--variant", action="append", required=True)
+    p.add_argument("--out", default=None, help="append rows to this CSV")
+    a = p.parse_args(argv)
+    if min(a.batch, a.rounds, a.repeats) < 1:
+        p.error(f"--batch, --rounds and --repeats must be >= 1, got {a.batch}, {a.rounds}, "
+                f"{a.repeats}")
+    try:
+        rows = run(a.task, a.variant, a.batch, a.rounds, a.repeats)
+    except (ValueError, ConfigError) as e:
+        p.error(str(e))
+    if a.out:
+        from bench.report import append_csv
+        append_csv(rows, a.out)
+
+
+if __name__ == "__main__":
+    main()
