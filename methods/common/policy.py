@@ -59,6 +59,10 @@ def _dense_t_bwd(res, g):
 dense_t.defvjp(_dense_t_fwd, _dense_t_bwd)
 
 
+ACTIVATION = linen.swish
+"""The hidden layers' activation (A.5): brax's network and `sample_batch` both use it."""
+
+
 @dataclasses.dataclass(frozen=True)
 class TanhGaussianPolicy:
     obs_size: int
@@ -73,7 +77,7 @@ class TanhGaussianPolicy:
     def _net(self):
         return networks.make_policy_network(
             self._dist.param_size, self.obs_size, hidden_layer_sizes=tuple(self.hidden),
-            activation=linen.swish)
+            activation=ACTIVATION)
 
     def init(self, key: jax.Array, norm: ObsNorm) -> dict:
         return {"net": self._net.init(key), "norm": norm}
@@ -105,15 +109,16 @@ class TanhGaussianPolicy:
             layer = layers[f"hidden_{i}"]
             x = dense_t(x, layer["kernel"], kt) + layer["bias"]
             if i < len(kernels_t) - 1:
-                x = linen.swish(x)
+                x = ACTIVATION(x)
+        return jax.vmap(self._draw)(x, keys)
+
+    def _draw(self, logits: jax.Array, key: jax.Array) -> jax.Array:
         d = self._dist
-        return jax.vmap(lambda lg, k: d.postprocess(d.sample_no_postprocessing(lg, k)))(
-            x, keys)
+        return d.postprocess(d.sample_no_postprocessing(logits, key))
 
     def sample(self, params: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
         """Reparameterized tanh-Gaussian sample (differentiable in params and obs)."""
-        d = self._dist
-        return d.postprocess(d.sample_no_postprocessing(self.logits(params, obs), key))
+        return self._draw(self.logits(params, obs), key)
 
     def mode(self, params: dict, obs: jax.Array) -> jax.Array:
         return self._dist.mode(self.logits(params, obs))

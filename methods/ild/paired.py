@@ -6,7 +6,8 @@ of its per-round env-steps/s over APG's (the benchmark's single APG epoch per pr
 by up to 10% between runs on this 2-core VM, which the 1.2x target cannot absorb):
 
     python -m methods.ild.paired --task acrobot --rounds 6 \\
-        --variant substep_remat,chunk=4 --variant substep_remat,transposed_backward,chunk=4
+        --variant substep_remat,transposed_backward=false,chunk=4 \\
+        --variant substep_remat,chunk=4
 
 A variant is comma-separated ILDConfig fields (a bare name sets a bool field True); its
 `chunk` is the updates per jitted call, as the trainer runs them.
@@ -52,16 +53,16 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         state = initial_state(params, opt, k[3], cfg)
         n = jax.numpy.int32(cfg.chunk)
         jax.block_until_ready(chunk(state, n))
-        timed[v] = (chunk, state, n, -(-repeats // cfg.chunk) * cfg.chunk)
+        timed[v] = (chunk, state, n, -(-repeats // cfg.chunk))  # calls: >= repeats updates
     seconds = {v: [] for v in variants}
 
     def time_ild(_):
-        for v, (chunk, state, n, total) in timed.items():
+        for v, (chunk, state, n, calls) in timed.items():
             t0 = time.perf_counter()
-            for _ in range(total // configs[v].chunk):
+            for _ in range(calls):
                 state = chunk(state, n)[0]
             jax.block_until_ready(state)
-            seconds[v].append((time.perf_counter() - t0) / total)
+            seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
     sps = apg_epochs(task, batch, base.hidden, repeats, rounds + 1, time_ild)
     apg_s = [steps / x for x in sps]

@@ -59,9 +59,12 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     env, T, B = task.env, task.episode_length, config.num_envs
     gn = normalize_grad if config.grad_normalization else (lambda x: x)
 
+    def physics_step(s, a):
+        return gn(env.step(s, a))
+
     def env_step(params, s, key):
         a = gn(policy.sample(params, s.obs, key))
-        return gn(env.step(s, a)), a
+        return physics_step(s, a), a
 
     def loss_fn(params, key, init_keys):
         k_act = key
@@ -76,7 +79,7 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
                 s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, keys)
             else:  # the same values as env_step's: the same per-env keys
                 a = jax.vmap(gn)(policy.sample_batch(params, s.obs, keys, kernels_t))
-                s2 = jax.vmap(lambda s, a: gn(env.step(s, a)))(s, a)
+                s2 = jax.vmap(physics_step)(s, a)
             m = jax.vmap(task.matched_state)(s2)
             cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
