@@ -667,13 +667,17 @@ def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     args = ["--task", "pointmass", "--batch", "4", "--repeats", "1", "--no-apg",
             "--rows", "forward", "--out", out]
     monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
     main(args)
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.hugetlb=1")  # bench.malloc
     main(args)
     rows = pd.read_csv(out)
     assert list(rows.what) == ["forward", "forward"]
     assert rows.xla_flags.isna().tolist() == [True, False]
     assert rows.xla_flags.iloc[1] == "--xla_cpu_use_fusion_emitters=false"
+    assert rows.malloc_hugetlb.isna().tolist() == [True, False]
+    assert rows.malloc_hugetlb.iloc[1] == 1
 
 
 def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
@@ -692,6 +696,10 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 1.0)
     rows = paired.run("pointmass", ["chunk=2", "remat"], batch=4, rounds=2, repeats=3)
     assert calls == [1, 2, 3]
+    assert {r["apg_physics"] for r in rows} == {"brax"}
+    import os
+    from bench.malloc import hugetlb
+    assert {r["malloc_hugetlb"] for r in rows} == {hugetlb(os.environ)}
     assert [(r["variant"], r["round"]) for r in rows] == [
         ("chunk=2", 0), ("chunk=2", 1), ("remat", 0), ("remat", 1)]
     for r in rows:
@@ -706,3 +714,13 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 0.0)
     with pytest.raises(ValueError, match="'pointmass'.*no gradient"):
         paired.run("pointmass", ["chunk=2"], batch=4, rounds=1, repeats=1)
+    for variants, match in (
+            (["chunk=2", "hidden=[64]"], r"'hidden=\[64\]' sets hidden=\(64,\).*one network"),
+            (["num_envs=64"], r"'num_envs=64' sets num_envs=64.*--batch \(now 4\)"),
+            (["small_dots", "remat"], r"\['small_dots'\] set small_dots and \['remat'\]")):
+        with pytest.raises(ValueError, match=match):  # refused before any task is built
+            paired.run("no_such_task", variants, batch=4, rounds=1, repeats=1)
+    base = paired.ILDConfig(num_envs=4)
+    assert paired.apg_on_small_dots({v: paired.parse_variant(v, 4) for v in
+                                     ("small_dots", "small_dots,chunk=2")}, base)
+    assert not paired.apg_on_small_dots({"chunk=2": paired.parse_variant("chunk=2", 4)}, base)

@@ -78,15 +78,20 @@ def test_record_round_trip_and_fields(toy, store):
 
 
 def test_record_names_the_xla_flags_it_ran_under(toy, store, monkeypatch):
-    # XLA's CPU code generator changes speed, so updates per budget: the record says which.
+    # XLA's CPU code generator and glibc's huge-page tunable (bench.malloc) change speed,
+    # so updates per budget: the record says which.
     monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
     rec, _ = execute(prepare(_req(seed=1)), store, log=lambda s: None)
-    assert rec["machine"]["xla_flags"] is None
+    assert rec["machine"]["xla_flags"] is None and rec["machine"]["malloc_hugetlb"] is None
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2:glibc.malloc.hugetlb=1")
     p = prepare(_req(seed=2))
     rec, _ = execute(p, store, log=lambda s: None)
     assert rec["machine"]["xla_flags"] == "--xla_cpu_use_fusion_emitters=false"
+    assert rec["machine"]["malloc_hugetlb"] == "1"
     monkeypatch.delenv("XLA_FLAGS")  # recorded, not hashed: the same cell either way
+    monkeypatch.delenv("GLIBC_TUNABLES")
     assert prepare(_req(seed=2)).run_id == p.run_id
 
 

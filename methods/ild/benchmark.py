@@ -352,9 +352,13 @@ def main(argv=None):
     rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
     if a.out:
         from bench.report import append_csv
+        from bench.malloc import hugetlb
         flags = os.environ.get("XLA_FLAGS") or None  # XLA's code generator changes speed
-        append_csv([{**r, "xla_flags": flags} for r in rows], a.out)
+        append_csv([{**r, "xla_flags": flags, "malloc_hugetlb": hugetlb(os.environ)}
+                    for r in rows], a.out)
 
 
 if __name__ == "__main__":
+    from bench.malloc import reexec_with_hugepages
+    reexec_with_hugepages("methods.ild.benchmark")  # as `ildbench` runs (bench.malloc)
     main()

@@ -10,7 +10,11 @@ by up to 10% between runs on this 2-core VM, which the 1.2x target cannot absorb
         --variant substep_remat,chunk=4
 
 A variant is comma-separated ILDConfig fields (a bare name sets a bool field True); its
-`chunk` is the updates per jitted call, as the trainer runs them.
+`chunk` is the updates per jitted call, as the trainer runs them. APG and every variant share
+one network (the paper's 512-256) and one batch (`--batch`), so a variant may not set
+`hidden` or `num_envs`. With `small_dots` APG trains on the same rewritten physics (like with
+like, as the benchmark's `apg_dots` row), so the variants of one call either all set it or
+none does.
 """
 from __future__ import annotations
 
@@ -21,11 +25,13 @@ import time
 
 import jax
 
+from bench.malloc import hugetlb, reexec_with_hugepages
 from bench.plugins import ConfigError, build_config, get_method
 from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
 from tasks import make_task
+from tasks.core import with_small_dots
 
 
 def parse_variant(text: str, batch: int) -> ILDConfig:
@@ -36,14 +42,34 @@ def parse_variant(text: str, batch: int) -> ILDConfig:
     return build_config(get_method("ild"), task="", overrides={"num_envs": batch, **fields})
 
 
+def apg_on_small_dots(configs: dict[str, ILDConfig], base: ILDConfig) -> bool:
+    """Whether APG trains on the small-dots physics (every variant sets small_dots) or on
+    the task's own (none does). ValueError, naming the variant and the fix, for a variant
+    whose network or batch is not APG's, or for variants that mix small_dots on and off."""
+    for v, cfg in configs.items():
+        if cfg.hidden != base.hidden:
+            raise ValueError(f"variant {v!r} sets hidden={cfg.hidden}: ILD and brax's APG are "
+                             f"timed on one network, {base.hidden}; leave hidden out")
+        if cfg.num_envs != base.num_envs:
+            raise ValueError(f"variant {v!r} sets num_envs={cfg.num_envs}: set the batch of "
+                             f"ILD and APG with --batch (now {base.num_envs}) instead")
+    dots = {v: cfg.small_dots for v, cfg in configs.items()}
+    if len(set(dots.values())) > 1:
+        raise ValueError(f"variants {sorted(v for v, d in dots.items() if d)} set small_dots "
+                         f"and {sorted(v for v, d in dots.items() if not d)} do not: APG "
+                         "trains on one physics, so time them in separate calls")
+    return any(dots.values())
+
+
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         repeats: int = 8) -> list[dict]:
+    base = ILDConfig(num_envs=batch)
+    configs = {v: parse_variant(v, batch) for v in variants}
+    on_dots = apg_on_small_dots(configs, base)
     task = make_task(task_name)
     if reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
                          "would time a forward rollout; pick a task with a reward gradient")
-    base = ILDConfig(num_envs=batch)
-    configs = {v: parse_variant(v, batch) for v in variants}
     policy, goals, norm, params, k = speed_setup(task, base)
     steps = batch * task.episode_length
     timed = {}
@@ -64,7 +90,8 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             jax.block_until_ready(state)
             seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
-    sps = apg_epochs(task, batch, base.hidden, repeats, rounds + 1, time_ild)
+    apg_task = with_small_dots(task) if on_dots else task
+    sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds + 1, time_ild)
     apg_s = [steps / x for x in sps]
     ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
     flags = os.environ.get("XLA_FLAGS") or None
@@ -74,7 +101,8 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
                          "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
                          "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
-                         "xla_flags": flags})
+                         "apg_physics": "small_dots" if on_dots else "brax",
+                         "xla_flags": flags, "malloc_hugetlb": hugetlb(os.environ)})
     for v in variants:
         ratios = [a / s for s, a in zip(ild[v], apg_s)]
         print(f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "
@@ -106,4 +134,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    reexec_with_hugepages("methods.ild.paired")  # as `ildbench` runs (bench.malloc)
     main()
