@@ -42,9 +42,11 @@ Each jitted function is compiled first (compile seconds reported) and then timed
 `--repeats` calls; each row also reports XLA's working memory for one call (`temp_mib`,
 the compiled function's temporaries: arguments and outputs excluded) and what the operating
 system charged per call: `fault_mib` (minor page faults x 4 KiB) and `sys_s` (kernel seconds).
-XLA's CPU runtime maps a call's working memory afresh each call and unmaps it after, so an
-update that stores the backward pass's residuals pays a page fault per 4 KiB of them on every
-call; K updates per call pay it once. Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
+XLA's CPU runtime mallocs a call's working memory afresh each call and glibc maps and unmaps
+it, so an update that stores the backward pass's residuals pays a page fault per 4 KiB of them
+on every call; K updates per call pay it once, and glibc's huge-page tunable, which this
+module sets as `ildbench` does (bench.malloc; ILDBENCH_HUGEPAGES=0: without), one per 2 MiB
+page. Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
 Goals are random states of the task's matched-state size: speed does not depend on them.
 """
 from __future__ import annotations
