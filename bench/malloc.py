@@ -25,6 +25,7 @@ from typing import Mapping
 TUNABLE = "glibc.malloc.hugetlb"
 OFF = "ILDBENCH_HUGEPAGES"
 THP_PATH = "/sys/kernel/mm/transparent_hugepage/enabled"
+_DONE = "ILDBENCH_HUGEPAGES_SET"
 
 
 def thp_mode(path: str = THP_PATH) -> str | None:
@@ -59,14 +60,16 @@ def hugetlb(env: Mapping[str, str] = os.environ) -> str | None:
 def env_with_hugepages(env: Mapping[str, str]) -> dict | None:
     """`env` with `glibc.malloc.hugetlb=1` added to its GLIBC_TUNABLES; None where there is
     nothing to add: the tunable is set already (either way), ILDBENCH_HUGEPAGES=0 turns it
-    off, or it cannot act here (not glibc >= 2.35, or transparent huge pages 'never' or
+    off, the process was re-executed for it already (ILDBENCH_HUGEPAGES_SET), or it cannot
+    act here (not glibc >= 2.35, or transparent huge pages 'never' or
     absent)."""
-    if env.get(OFF) == "0" or hugetlb(env) is not None:
+    if env.get(OFF) == "0" or hugetlb(env) is not None or env.get(_DONE):
         return None
     if (glibc_version() or (0, 0)) < (2, 35) or thp_mode() in (None, "never"):
         return None
     given = env.get("GLIBC_TUNABLES")
-    return {**env, "GLIBC_TUNABLES": f"{given}:{TUNABLE}=1" if given else f"{TUNABLE}=1"}
+    return {**env, "GLIBC_TUNABLES": f"{given}:{TUNABLE}=1" if given else f"{TUNABLE}=1",
+            _DONE: "1"}  # never twice, even where the C library dropped the tunable
 
 
 def reexec_with_hugepages(module: str) -> None:

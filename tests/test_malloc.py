@@ -17,10 +17,11 @@ def able(monkeypatch):
 
 
 def test_env_with_hugepages_adds_the_tunable_once(able, monkeypatch):
-    tun = "glibc.malloc.hugetlb=1"
-    assert malloc.env_with_hugepages({"A": "b"}) == {"A": "b", "GLIBC_TUNABLES": tun}
+    tun, done = "glibc.malloc.hugetlb=1", {"ILDBENCH_HUGEPAGES_SET": "1"}
+    assert malloc.env_with_hugepages({"A": "b"}) == {"A": "b", "GLIBC_TUNABLES": tun, **done}
     assert malloc.env_with_hugepages({"GLIBC_TUNABLES": "glibc.malloc.arena_max=2"}) == {
-        "GLIBC_TUNABLES": "glibc.malloc.arena_max=2:" + tun}
+        "GLIBC_TUNABLES": "glibc.malloc.arena_max=2:" + tun, **done}
+    assert malloc.env_with_hugepages(done) is None  # re-executed once already
     # set already, either way, or turned off: nothing to add
     assert malloc.env_with_hugepages({"GLIBC_TUNABLES": tun}) is None
     assert malloc.env_with_hugepages({"GLIBC_TUNABLES": "x.y=3:glibc.malloc.hugetlb=0"}) is None
@@ -31,7 +32,7 @@ def test_env_with_hugepages_adds_the_tunable_once(able, monkeypatch):
     monkeypatch.setattr(malloc, "thp_mode", lambda path=malloc.THP_PATH: "never")
     assert malloc.env_with_hugepages({}) is None
     monkeypatch.setattr(malloc, "thp_mode", lambda path=malloc.THP_PATH: "always")
-    assert malloc.env_with_hugepages({}) == {"GLIBC_TUNABLES": tun}
+    assert malloc.env_with_hugepages({}) == {"GLIBC_TUNABLES": tun, **done}
     for version in ((2, 34), None):  # the tunable came with glibc 2.35; not glibc at all
         monkeypatch.setattr(malloc, "glibc_version", lambda v=version: v)
         assert malloc.env_with_hugepages({}) is None
@@ -54,8 +55,8 @@ def test_ildbench_reexecutes_itself_once_with_the_tunable(able, monkeypatch):
     monkeypatch.setattr(os, "execve", fake_execve)
     monkeypatch.setattr(cli, "main", lambda: 7)
     monkeypatch.setattr(sys, "argv", ["ildbench", "run", "--task", "pointmass"])
-    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
-    monkeypatch.delenv("ILDBENCH_HUGEPAGES", raising=False)
+    for name in ("GLIBC_TUNABLES", "ILDBENCH_HUGEPAGES", "ILDBENCH_HUGEPAGES_SET"):
+        monkeypatch.delenv(name, raising=False)
     with pytest.raises(SystemExit):
         cli.entry()
     assert calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "run", "--task",
