@@ -6,8 +6,8 @@ serves an allocation that large with a fresh anonymous mapping and unmaps it on 
 every call pays one page fault per 4 KiB page it touches (49k faults, ~0.1 s of kernel time
 in a ~0.45 s hopper update; README ILD speed, sessions 25 and 32). With the tunable
 `glibc.malloc.hugetlb=1` (glibc >= 2.35) malloc advises the kernel to back its mappings with
-2 MiB transparent huge pages, which cuts the faults ~100-fold; where the kernel's
-transparent huge pages are `madvise` or `always` that is what happens. It changes where
+2 MiB transparent huge pages, which cuts the faults 30-100-fold (pointmass, hopper) where
+the kernel's transparent huge pages are `madvise` or `always`. It changes where
 memory comes from, not what is computed: the same numbers bit for bit (tested).
 
 glibc reads tunables when a process starts, so the `ildbench` command (and the speed
