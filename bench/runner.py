@@ -58,17 +58,22 @@ def git_revision() -> str | None:
         return None
 
 
-def machine() -> dict:
-    """The machine a record was made on. `xla_flags` is the environment's XLA_FLAGS (None
-    unset): XLA's code generator changes speed (README ILD speed, session 28), so a run's
-    updates per budget depend on it; so does `malloc_hugetlb`, glibc's huge-page tunable
+def speed_settings() -> dict:
+    """The process settings that change speed but no number, as records and the speed CSVs
+    name them: `xla_flags`, the environment's XLA_FLAGS (None unset; XLA's code generator,
+    README ILD speed, session 28), and `malloc_hugetlb`, glibc's huge-page tunable
     (bench.malloc; None unset: `ildbench` sets it to "1" where it can act, session 32)."""
     from bench.malloc import hugetlb
+    return {"xla_flags": os.environ.get("XLA_FLAGS") or None,
+            "malloc_hugetlb": hugetlb(os.environ)}
+
+
+def machine() -> dict:
+    """The machine a record was made on, with its `speed_settings`: a run's updates per
+    budget depend on them."""
     return {"platform": platform.platform(), "processor": platform.processor(),
             "cpus": os.cpu_count(), "python": platform.python_version(),
-            "jax_devices": [str(d) for d in jax.devices()],
-            "xla_flags": os.environ.get("XLA_FLAGS") or None,
-            "malloc_hugetlb": hugetlb(os.environ)}
+            "jax_devices": [str(d) for d in jax.devices()], **speed_settings()}
 
 
 def resources() -> dict:

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import resource
 import time
 
@@ -354,10 +353,9 @@ def main(argv=None):
     rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
     if a.out:
         from bench.report import append_csv
-        from bench.malloc import hugetlb
-        flags = os.environ.get("XLA_FLAGS") or None  # XLA's code generator changes speed
-        append_csv([{**r, "xla_flags": flags, "malloc_hugetlb": hugetlb(os.environ)}
-                    for r in rows], a.out)
+        from bench.runner import speed_settings
+        settings = speed_settings()  # XLA's code generator, glibc's huge pages: speed
+        append_csv([{**r, **settings} for r in rows], a.out)
 
 
 if __name__ == "__main__":

@@ -19,14 +19,14 @@ none does.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import time
 
 import jax
 
-from bench.malloc import hugetlb, reexec_with_hugepages
+from bench.malloc import reexec_with_hugepages
 from bench.plugins import ConfigError, build_config, get_method
+from bench.runner import speed_settings
 from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
@@ -94,7 +94,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
     sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds + 1, time_ild)
     apg_s = [steps / x for x in sps]
     ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
-    flags = os.environ.get("XLA_FLAGS") or None
+    settings = speed_settings()
     rows = []
     for v in variants:
         for r, (s, a) in enumerate(zip(ild[v], apg_s)):
@@ -102,7 +102,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
                          "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
                          "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
                          "apg_physics": "small_dots" if on_dots else "brax",
-                         "xla_flags": flags, "malloc_hugetlb": hugetlb(os.environ)})
+                         **settings})
     for v in variants:
         ratios = [a / s for s, a in zip(ild[v], apg_s)]
         print(f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "

@@ -20,6 +20,7 @@ import re
 import jax
 import jax.numpy as jnp
 
+from bench.report import append_csv
 from methods.ild.benchmark import speed_setup, vjp_of_ones
 from methods.ild.config import ILDConfig
 from tasks import make_task
@@ -90,7 +91,6 @@ def main(argv=None):
     for name in a.tasks.split(","):
         rows = task_rows(name, a.batch)
         if a.out:  # task by task: a long run keeps what it measured
-            from bench.report import append_csv
             append_csv(rows, a.out)
 
 
