@@ -190,6 +190,13 @@ def without_joint_limits(task: Task) -> Task:
     return _like(task, Task(spec=task.spec, env=env))
 
 
+def has_substep_loop(task: Task) -> bool:
+    """Whether `task` steps its physics through brax's substep loop (`PipelineEnv`): the
+    tasks `with_substep_remat` and `with_small_dots` can rewrite (all 8 brax tasks; not
+    pointmass's analytic step or the cloth's own solver)."""
+    return isinstance(task.env.unwrapped, PipelineEnv)
+
+
 def with_substep_remat(task: Task) -> Task:
     """A fresh copy of brax task `task` (same `sys`, so a `without_joint_limits` copy stays
     one) whose physics step rematerializes each of its `n_frames` substeps in the backward

@@ -520,10 +520,12 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
     ild = get_method("ild")
     assert build_config(ild, "inverted_pendulum", "cpu").truncation == 128
     assert build_config(ild, "hopper", "cpu").truncation == 10
-    # rematerialized backward where it measured faster and scored higher (config.py)
-    assert build_config(ild, "ant", "cpu").remat and build_config(ild, "ant", "paper").remat
-    assert not build_config(ild, "humanoid", "cpu").remat
-    assert not build_config(ild, "hopper", "cpu").remat
+    # since version 5 every task rematerializes brax's substeps (the default), none whole
+    # steps: ant's remat override is gone (config.py)
+    for name in ("ant", "humanoid", "hopper"):
+        for preset in ("cpu", "paper"):
+            cfg = build_config(ild, name, preset)
+            assert cfg.substep_remat and not cfg.remat
 
 
 @pytest.mark.slow
@@ -646,8 +648,25 @@ def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks(
     assert make_task("swimmer").env.unwrapped.sys.dof.limit is not None
     with pytest.raises(ValueError, match="pointmass.*substep_remat"):
         with_substep_remat(make_task("pointmass"))
-    with pytest.raises(ValueError, match="substep_remat"):
-        rollout_physics(make_task("pointmass"), ILDConfig(substep_remat=True))
+
+
+def test_substep_remat_is_the_default_where_brax_has_substeps():
+    """Since version 5 ILD's training rollouts rematerialize each brax substep by default:
+    on hopper the default config's physics is a with_substep_remat copy (its own
+    pipeline_step, checkpointed), `substep_remat=False` keeps brax's; pointmass has no
+    substep loop, so the default leaves its task as it is instead of refusing it."""
+    from bench.plugins import get_method
+    from methods.ild.config import TASK_OVERRIDES
+    from tasks.core import has_substep_loop
+    assert ILDConfig().substep_remat is True
+    hopper, pointmass = make_task("hopper"), make_task("pointmass")
+    assert has_substep_loop(hopper) and not has_substep_loop(pointmass)
+    phys = rollout_physics(hopper, ILDConfig())
+    assert phys is not hopper and "pipeline_step" in vars(phys.env.unwrapped)
+    assert rollout_physics(hopper, ILDConfig(substep_remat=False)) is hopper
+    assert rollout_physics(pointmass, ILDConfig()) is pointmass
+    assert "ant" not in TASK_OVERRIDES  # ant's whole-step remat (versions 1-4) is gone
+    assert get_method("ild").version == "5"
 
 
 def test_speed_benchmark_runs_the_rows_asked_for():

@@ -13,5 +13,6 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
-    version="4",  # 3: mask_after_done option; 4: observation normalizer frozen
+    version="5",  # 3: mask_after_done option; 4: observation normalizer frozen;
+    # 5: substep_remat on by default (ant's remat override dropped)
 )

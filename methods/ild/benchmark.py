@@ -5,12 +5,15 @@ horizon (128) and policy network (512-256 swish, tanh-Gaussian):
 
 rows:
   forward      the batched 128-step rollout + Chamfer loss, value only
-  ild          one full ILD update (rollout, Chamfer, backward through the physics with
-               per-step gradient normalization and truncation 10, clip, Adam)
-  ild_no_gn    the same without per-step gradient normalization
-  ild_remat    the same with jax.checkpoint on every step (rematerialization)
-  ild_substep  the same with jax.checkpoint on every physics substep inside a step
-               (`--set substep_remat=true`; brax tasks only)
+  ild          one full ILD update as ILD trains by default (rollout, Chamfer, backward
+               through the physics with per-step gradient normalization and truncation 10,
+               clip, Adam; since version 5 each brax physics substep rematerialized)
+  ild_plain    the same without substep remat (`--set substep_remat=false`: ILD's default
+               before version 5); the remat, dots and untransposed rows below start from it
+  ild_no_gn    the default update without per-step gradient normalization
+  ild_remat    ild_plain with jax.checkpoint on every step (rematerialization)
+  ild_substep  ild_plain with jax.checkpoint on every physics substep inside a step (brax
+               tasks only; the same config as `ild` since version 5, kept for the CSVs' rows)
   ild_both     both: each step checkpointed and each substep inside it (the outer scan then
                stores one state per step, not one per substep)
   dots         the physics step's small matrix products as multiply-and-sum
@@ -22,7 +25,8 @@ rows:
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
                transposed once per update, the same gradient bit for bit)
-  ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call, the trainer's
+  ild_chunkK, ild_remat_chunkK, ild_substep_chunkK   K (`--chunk`) updates in one jitted call
+               of the ild, ild_remat and ild_substep configs, the trainer's
                own chunk (`make_chunk`, as `--set chunk=K` trains; brax's APG scans an epoch);
                seconds and env-steps/s per update
   chamfer      Chamfer-alpha alone, value and gradient, on (B, 128, D) states
@@ -65,7 +69,7 @@ from methods.ild.losses import chamfer_alpha
 from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
                                make_update, rollout_physics)
 from tasks import make_task
-from tasks.core import open_loop
+from tasks.core import has_substep_loop, open_loop
 
 
 def temp_bytes(compiled) -> int:
@@ -156,11 +160,14 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     return float(jnp.linalg.norm(g))
 
 
-ROWS = ("forward", "ild", "ild_no_gn", "ild_remat", "ild_substep", "ild_both", "ild_chunk",
-        "ild_remat_chunk", "ild_substep_chunk", "dots", "untransposed", "step", "policy",
-        "chamfer", "apg")
+ROWS = ("forward", "ild", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep", "ild_both",
+        "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "untransposed", "step",
+        "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs)."""
+SUBSTEP_ROWS = ("ild_plain", "ild_substep", "ild_both", "ild_substep_chunk")
+"""Row groups that differ from `ild` only where a task has brax's substep loop: left out
+elsewhere (pointmass), where they would time the same update again."""
 
 
 def check_rows(only) -> None:
@@ -211,9 +218,10 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     loss_fn = make_rollout_loss(task, policy, goals, norm, base)
     if "forward" in only:
         row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
-    remat = dataclasses.replace(base, remat=True)
-    substep = dataclasses.replace(base, substep_remat=True)
-    dots = dataclasses.replace(base, small_dots=True)
+    plain = dataclasses.replace(base, substep_remat=False)  # ILD's default before version 5
+    remat = dataclasses.replace(plain, remat=True)
+    substep = dataclasses.replace(plain, substep_remat=True)
+    dots = dataclasses.replace(plain, small_dots=True)
     if "dots" in only:
         try:
             dots_task = rollout_physics(task, dots)
@@ -225,7 +233,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,),
                                       repeats))
     for group, name, cfg, n in (
-            ("ild", "ild", base, 1),
+            ("ild", "ild", base, 1), ("ild_plain", "ild_plain", plain, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
             ("ild_both", "ild_both", dataclasses.replace(substep, remat=True), 1),
@@ -235,16 +243,16 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("dots", "ild_dots", dots, 1),
             ("dots", "ild_substep_dots", dataclasses.replace(substep, small_dots=True), 1),
             ("untransposed", "ild_untransposed",
-             dataclasses.replace(base, transposed_backward=False), 1),
+             dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
              dataclasses.replace(substep, transposed_backward=False), 1)):
         if (n > 1 and chunk == 1) or group not in only:
             continue
-        try:
-            physics = rollout_physics(task, cfg)
-        except ValueError as e:  # substep_remat on a task with no brax substep loop
-            print(f"{name}: left out on {task_name}: {e}", flush=True)
+        if group in SUBSTEP_ROWS and not has_substep_loop(task):
+            print(f"{name}: left out on {task_name}: no brax substep loop to rewrite",
+                  flush=True)
             continue
+        physics = rollout_physics(task, cfg)
         update, opt, _ = make_update(physics, policy, goals, norm, cfg, k[2])
         state = initial_state(params, opt, k[3], cfg)
         if n == 1:
@@ -303,17 +311,18 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("chamfer_share_of_update_memory", "chamfer", "ild", "temp_mib")
     ratio("step_vjp_over_forward", "step_vjp", "step_forward")
     ratio("policy_vjp_over_forward", "policy_vjp", "policy_forward")
-    ratio("substep_speedup", "ild", "ild_substep")
+    ratio("substep_speedup", "ild_plain", "ild_substep")
     ratio("chunk_speedup", "ild", f"ild_chunk{chunk}")
     ratio("remat_chunk_speedup", "ild_remat", f"ild_remat_chunk{chunk}")
     ratio("substep_chunk_speedup", "ild_substep", f"ild_substep_chunk{chunk}")
-    ratio("transposed_speedup", "ild_untransposed", "ild")
+    ratio("transposed_speedup", "ild_untransposed",
+          "ild_plain" if "ild_plain" in by else "ild")  # pointmass: no plain row, the same
     ratio("transposed_substep_speedup", "ild_substep_untransposed", "ild_substep")
     ratio("dots_forward_speedup", "forward", "forward_dots")
     ratio("dots_substep_speedup", "ild_substep", "ild_substep_dots")
     ratio("dots_substep_update_over_forward", "ild_substep_dots", "forward_dots")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
-        for name in ("ild", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
+        for name in ("ild", "ild_plain", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
                      f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
                      "ild_untransposed", "ild_substep_untransposed"):
             if name in by:

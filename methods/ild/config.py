@@ -74,14 +74,20 @@ class ILDConfig:
     remat: bool = False
     """Rematerialize each step in the backward pass (jax.checkpoint): less memory, more
     compute; measured by `python -m methods.ild.benchmark`."""
-    substep_remat: bool = False
+    substep_remat: bool = True
     """Rematerialize each physics substep inside a control step in the backward pass
     (`tasks.core.with_substep_remat`: brax's substep scan stores only each substep's input
-    state). The same gradient, 1.21-1.51x faster on all brax tasks but swimmer (1.00x): on
-    one CPU core at B = 32 an update took 0.377 s instead of 0.502 on hopper and 1.334
-    instead of 2.018 on ant (1.518 with ant's `remat`), with 1/2 to 1/7 of the working
-    memory (`python -m methods.ild.benchmark`, session 27, README ILD speed). Off by default:
-    every recorded ILD cell ran without it (making it the default is a version bump)."""
+    state and recomputes the rest next to its backward). The same function and gradient to
+    float32 round-off (acrobot's bit for bit; hopper's differs by 6e-7 at B = 8), 1.21-1.51x
+    faster on all brax tasks but swimmer (1.00x) with 1/2 to 1/7 of the working memory: on
+    one CPU core at B = 32 an update took 0.377 s instead of 0.502 on hopper and 1.334 instead
+    of 2.018 on ant (1.518 with whole-step `remat`; `python -m methods.ild.benchmark`,
+    session 27). With glibc's huge-page tunable (`bench.malloc`) 1.09-1.31x faster, for 1.14x
+    (acrobot, hopper, reacher) to 1.46x (humanoid) APG's env-steps/s against 1.02-1.18x
+    without it (`python -m methods.ild.paired`, session 32; README ILD speed). On by default
+    since version 5 (session 33; versions 1-4 ran without it, so their records pool apart).
+    Tasks without brax's substep loop (pointmass, cloth) have nothing to rematerialize: there
+    it changes nothing."""
     small_dots: bool = False
     """Compute the physics step's small matrix products as multiply-and-sum in the training
     rollouts (`tasks.core.with_small_dots`): the same function and gradient to float32
@@ -167,18 +173,9 @@ TASK_OVERRIDES: dict[str, dict] = {
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.
     "cloth": {"num_envs": 10, "learning_rate": 1e-4},
-    # ant: rematerialize each step in the backward pass. The same gradient (each step's
-    # forward is recomputed next to its backward, not approximated; tested), computed 1.34x
-    # faster on one CPU core at B = 32 (2.215 -> 1.649 s per update, `python -m
-    # methods.ild.benchmark --task ant`, session 18): ant's per-step residuals are large (811
-    # MiB per update), and XLA's CPU runtime maps that working memory afresh on every call,
-    # which the kernel zero-fills page by page (session 25); remat needs 3-24 MiB. ILD is budget-bound
-    # on ant (0.20 / 0.40 / 0.49 at 1 / 2 / 3 minutes), and the speed is score there: 3-minute
-    # cells, same session and load, 109-110 updates and 0.507 / 0.601 / 0.637 over seeds 0-2
-    # with remat vs 82-88 updates and 0.496 / 0.502 / 0.564 without (README ILD section).
-    # humanoid keeps the default although remat is 1.21x faster there: the same comparison
-    # gave 75-78 vs 59-60 updates but 0.764 / 0.812 / 0.839 vs 0.849 / 0.860 / 0.860. The
-    # other tasks gain 1.02-1.25x (swimmer's generalized backend loses: 0.94x) and reach their
-    # plateau within 3 minutes; an override is a new config for every record made without it.
-    "ant": {"remat": True},
+    # ant ran with whole-step `remat` in versions 1-4 (1.34x faster than none: its per-step
+    # residuals are 811 MiB per update, mapped afresh on every call; session 18). Since
+    # version 5 every brax task rematerializes each substep by default, which is faster still
+    # on ant (1.334 vs 1.518 s per update; 125-128 vs 105-114 updates in 3-minute cells,
+    # session 27) in 123 MiB, so ant has no override.
 }

@@ -20,7 +20,8 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
                                    make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
-from tasks.core import with_small_dots, with_substep_remat, without_joint_limits
+from tasks.core import (has_substep_loop, with_small_dots, with_substep_remat,
+                        without_joint_limits)
 
 
 @flax.struct.dataclass
@@ -201,11 +202,12 @@ def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: flo
 
 def rollout_physics(task, config: ILDConfig):
     """The task the training rollouts differentiate through (evaluation always uses `task`):
-    without joint limits, with each physics substep rematerialized and/or with small matrix
-    products as multiply-and-sum, as configured."""
+    without joint limits, with each physics substep rematerialized (where the task has brax's
+    substep loop: `substep_remat` is on by default and has nothing to act on elsewhere) and/or
+    with small matrix products as multiply-and-sum, as configured."""
     if not config.joint_limits:
         task = without_joint_limits(task)
-    if config.substep_remat:
+    if config.substep_remat and has_substep_loop(task):
         task = with_substep_remat(task)
     if config.small_dots:
         task = with_small_dots(task)
