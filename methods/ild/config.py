@@ -82,9 +82,10 @@ class ILDConfig:
     faster on all brax tasks but swimmer (1.00x) with 1/2 to 1/7 of the working memory: on
     one CPU core at B = 32 an update took 0.377 s instead of 0.502 on hopper and 1.334 instead
     of 2.018 on ant (1.518 with whole-step `remat`; `python -m methods.ild.benchmark`,
-    session 27). With glibc's huge-page tunable (`bench.malloc`) 1.09-1.31x faster, for 1.14x
-    (acrobot, hopper, reacher) to 1.46x (humanoid) APG's env-steps/s against 1.02-1.18x
-    without it (`python -m methods.ild.paired`, session 32; README ILD speed). On by default
+    session 27). With glibc's huge-page tunable (`bench.malloc`) still 1.08-1.31x faster,
+    for 1.09-1.24x (acrobot, hopper, reacher) to 1.46-1.50x (humanoid, ant) APG's env-steps/s
+    against 1.02-1.22x without it (`python -m methods.ild.paired`, sessions 32-33; README ILD
+    speed; swimmer 0.86x: its cost is elsewhere, `small_dots`). On by default
     since version 5 (session 33; versions 1-4 ran without it, so their records pool apart).
     Tasks without brax's substep loop (pointmass, cloth) have nothing to rematerialize: there
     it changes nothing."""
