@@ -206,11 +206,11 @@ def with_substep_remat(task: Task) -> Task:
     rest next to its backward. The same function and gradient (to float32 round-off: tested);
     what it buys is measured by `python -m methods.ild.benchmark` (README ILD speed). The
     registry's cached task is left as it is. Errors for a task with no brax substep loop."""
-    env = build_env(task.spec)
-    inner, given = env.unwrapped, task.env.unwrapped
-    if not isinstance(inner, PipelineEnv):
+    if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rematerialize "
                          "(substep_remat is for brax PipelineEnv tasks; leave it False)")
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
     if "pipeline_step" in vars(given):  # it would be dropped: this step is built from brax's
         raise ValueError(f"task {task.name!r} already has its own physics step (a "
                          "with_substep_remat or with_small_dots copy); apply "
@@ -239,11 +239,11 @@ def with_small_dots(task: Task) -> Task:
     Apply it after `with_substep_remat` (which builds its step from brax's substep and refuses
     a copy that has its own): the checkpointed substeps are then rewritten inside."""
     from tasks.small_dots import small_dots_as_sums
-    env = build_env(task.spec)
-    inner, given = env.unwrapped, task.env.unwrapped
-    if not isinstance(inner, PipelineEnv):
+    if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics step to rewrite "
                          "(small_dots is for brax PipelineEnv tasks; leave it False)")
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
     inner.sys = given.sys
     inner.pipeline_step = small_dots_as_sums(given.pipeline_step)
     return _like(task, Task(spec=task.spec, env=env))
