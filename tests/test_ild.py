@@ -447,6 +447,72 @@ def test_benchmark_counts_the_page_faults_of_a_calls_working_memory():
     assert t.sys_s >= 0 and t.seconds > 0
 
 
+def _lock_state(path) -> str:
+    """'free', 'shared' (another process could share it) or 'exclusive', as seen from a
+    second open file description of `path` (flock locks belong to those)."""
+    import fcntl
+    with open(path, "a") as f:
+        for mode, name in ((fcntl.LOCK_EX, "free"), (fcntl.LOCK_SH, "shared")):
+            try:
+                fcntl.flock(f, mode | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue
+            fcntl.flock(f, fcntl.LOCK_UN)
+            return name
+    return "exclusive"
+
+
+def test_benchmark_times_under_the_time_lock(tmp_path, monkeypatch):
+    """`--time-lock PATH`: each timed section holds an exclusive lock on PATH (several
+    processes on one accelerator are then timed one at a time), compiling does not, and
+    the lock is free again afterwards; a shared hold becomes exclusive on request; without
+    a path nothing is locked."""
+    from methods.ild import benchmark
+    path = str(tmp_path / "lock")
+    lock = benchmark.TimingLock(path)
+    monkeypatch.setattr(benchmark, "TIME_LOCK", lock)
+    seen = []
+    callback = jax.debug.callback  # runs at each call of the compiled function, not at trace
+    benchmark._time(lambda x: (callback(lambda: seen.append(_lock_state(path))), x + 1)[1],
+                    (jnp.ones(3),), 2)
+    assert seen == ["exclusive"] * 3  # the warm-up call and the 2 timed calls
+    assert _lock_state(path) == "free"
+    lock.acquire(shared=True)
+    assert _lock_state(path) == "shared"
+    lock.acquire()  # shared -> exclusive
+    assert _lock_state(path) == "exclusive"
+    lock.release()
+    assert _lock_state(path) == "free"
+    free = benchmark.TimingLock()  # no path: a no-op
+    with free:
+        assert free._file is None
+
+
+def test_apg_is_timed_on_its_third_epoch_under_the_lock(tmp_path, monkeypatch):
+    """brax's APG row: three epochs, the last one's steady-state env-steps/s (on newer JAX
+    the second epoch compiles again: 23 env-steps/s against 4,700 on jax 0.10.2). The lock
+    is held shared over the first two (they compile and run in one call of apg.train, so no
+    other process's timed section may run beside them), exclusively over the third, and
+    released at the end."""
+    from methods.ild import benchmark
+    path = str(tmp_path / "lock")
+    monkeypatch.setattr(benchmark, "TIME_LOCK", benchmark.TimingLock(path))
+    states = []
+
+    def fake_apg(task, batch, hidden, updates, epochs, after_epoch):
+        assert (batch, updates, epochs) == (8, 2, 3)
+        sps = []
+        for it in range(1, epochs + 1):
+            states.append(_lock_state(path))  # while epoch `it` runs
+            sps.append(100.0 * it)
+            after_epoch(it)
+        return sps
+    monkeypatch.setattr(benchmark, "apg_epochs", fake_apg)
+    assert benchmark._apg_sps(None, 8, (4,), 2) == 300.0
+    assert states == ["shared", "shared", "exclusive"]
+    assert _lock_state(path) == "free"
+
+
 def test_benchmark_leaves_apg_out_where_the_reward_has_no_gradient():
     """APG descends minus the reward: on inverted_pendulum (a constant reward of 1 per step)
     its gradient is identically zero, XLA drops the backward pass, and its 'training/sps'

@@ -39,8 +39,9 @@ rows:
   policy_vjp_transposed       the same VJP as ILD's rollout runs it by default (batched,
                the kernels' transposes made beforehand: `transposed_backward`)
   apg          brax's own APG trainer (brax.training.agents.apg), horizon 128, same network;
-               its steady-state 'training/sps' (its second epoch, `--repeats` updates in
-               one jitted scan; the first epoch compiles); left
+               its steady-state 'training/sps' (its third epoch, `--repeats` updates in
+               one jitted scan; the first epoch compiles, and on newer JAX the second
+               too); left
                out where the task's reward has no gradient (inverted_pendulum's constant
                reward: APG's backward pass is then empty and it would time a forward rollout)
 Each jitted function is compiled first (compile seconds reported) and then timed over
@@ -53,11 +54,14 @@ on every call; K updates per call pay it once, and glibc's huge-page tunable, wh
 module sets as `ildbench` does (bench.malloc; ILDBENCH_HUGEPAGES=0: without), one per 2 MiB
 page. Targets (issue 4): ild >= 1.2x apg env-steps/s; ild <= 3x forward.
 Goals are random states of the task's matched-state size: speed does not depend on them.
+Several processes on one accelerator (results/gpu/speed_recipe.sh): `--time-lock PATH` makes
+them compile side by side and time one at a time (TimingLock).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import fcntl
 import resource
 import time
 
@@ -88,17 +92,56 @@ class Timing:
     sys_s: float         # kernel seconds per call
 
 
+class TimingLock:
+    """A lock on a file (`--time-lock PATH`) held around each timed section, so that
+    several benchmark processes sharing one accelerator compile side by side but are timed
+    one at a time: a timed section (its warm-up call and timed calls) holds the lock
+    exclusively; device work that is not timed but cannot be kept apart from compiling
+    (brax's APG trainer compiles and runs its first epochs in one call) holds it shared, so
+    no timed section runs beside it. Without a path it does nothing (one process per CPU
+    core needs none)."""
+
+    def __init__(self, path: str | None = None):
+        self.path, self._file = path, None
+
+    def acquire(self, shared: bool = False) -> None:
+        """Take the lock (exclusive, or shared); on a shared one, take it exclusive."""
+        if self.path is None:
+            return
+        if self._file is None:
+            self._file = open(self.path, "a")
+        fcntl.flock(self._file, fcntl.LOCK_SH if shared else fcntl.LOCK_EX)
+
+    def release(self) -> None:
+        if self._file is not None:
+            fcntl.flock(self._file, fcntl.LOCK_UN)
+            self._file.close()
+            self._file = None
+
+    def __enter__(self):
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+TIME_LOCK = TimingLock()
+"""The timed sections' lock (`--time-lock`); a no-op unless main() is given a path."""
+
+
 def _time(fn, args, repeats) -> Timing:
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))
-    r0 = resource.getrusage(resource.RUSAGE_SELF)
-    t0 = time.perf_counter()
-    for _ in range(repeats):
+    with TIME_LOCK:  # compiled outside it: other processes' timing goes on meanwhile
         jax.block_until_ready(compiled(*args))
-    sec = (time.perf_counter() - t0) / repeats
-    r1 = resource.getrusage(resource.RUSAGE_SELF)
+        r0 = resource.getrusage(resource.RUSAGE_SELF)
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            jax.block_until_ready(compiled(*args))
+        sec = (time.perf_counter() - t0) / repeats
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
     return Timing(sec, compile_s, temp_bytes(compiled),
                   (r1.ru_minflt - r0.ru_minflt) * resource.getpagesize() / 2**20 / repeats,
                   (r1.ru_stime - r0.ru_stime) / repeats)
@@ -122,6 +165,9 @@ def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None
     from brax.training.agents.apg import train as apg
     from flax import linen
 
+    from tasks.jax_compat import apply as jax_compat
+    jax_compat()  # brax's trainer on a newer JAX, whatever the task's env (acrobot is ours)
+
     sps = []
 
     def factory(obs_size, action_size, preprocess_observations_fn):
@@ -141,10 +187,27 @@ def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None
     return sps[1:]
 
 
-def _apg_sps(task, batch, hidden, repeats):
-    # Two epochs of `repeats` updates each: the first compiles, the second is timed over
-    # `repeats` updates, as ILD's rows are.
-    return apg_epochs(task, batch, hidden, repeats, 2)[-1]
+def _apg_sps(task, batch, hidden, repeats, epochs: int = 3):
+    # `epochs` epochs of `repeats` updates each, the last timed over `repeats` updates, as
+    # ILD's rows are. The first compiles; on newer JAX (0.10.2 checked with JAX_LOG_COMPILES:
+    # brax's pmapped epoch is compiled again on its second call, which then ran at 23 env
+    # steps/s against 4,700 on the third) the second compiles too; on the pinned JAX the
+    # second is already steady. The timing lock is held shared until the end of the
+    # next-to-last epoch (those epochs compile and run in one call: no other process's timed
+    # section runs beside them) and exclusively over the last (brax times it in apg.train).
+    ends = []
+
+    def after_epoch(it):
+        ends.append(it)
+        if len(ends) == epochs - 1:
+            TIME_LOCK.acquire()  # shared -> exclusive
+        elif len(ends) == epochs:
+            TIME_LOCK.release()
+    TIME_LOCK.acquire(shared=True)
+    try:
+        return apg_epochs(task, batch, hidden, repeats, epochs, after_epoch)[-1]
+    finally:
+        TIME_LOCK.release()
 
 
 def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
@@ -357,7 +420,12 @@ def main(argv=None):
     p.add_argument("--rows", default=",".join(ROWS),
                    help=f"comma-separated row groups to run (default all: {','.join(ROWS)})")
     p.add_argument("--out", default=None, help="append rows to this CSV")
+    p.add_argument("--time-lock", default=None, metavar="PATH",
+                   help="hold an exclusive lock on PATH around each timed section: several "
+                        "processes on one accelerator then compile side by side and are "
+                        "timed one at a time")
     a = p.parse_args(argv)
+    TIME_LOCK.path = a.time_lock
     if a.chunk < 1 or a.repeats < 1 or a.batch < 1:
         p.error(f"--chunk, --repeats and --batch must be >= 1, got {a.chunk}, {a.repeats}, "
                 f"{a.batch}")

@@ -1,0 +1,55 @@
+#!/bin/bash
+# ILD's update against brax's APG and a forward rollout at the paper's batch on one GPU
+# (session 34): one accelerator call, run from the repo root on the device machine, whose
+# image ships jax 0.11.2 with CUDA 13, flax, optax, pandas, matplotlib and rich. The wheels it
+# lacks travel in the ignored .whl/ folder (carry .whl): brax 0.14.2, mujoco 4.0.0 +
+# mujoco-core 4.0.0 (cp312), mujoco-mjx 3.17.0, trimesh 5.2.0, ml_collections 1.1.0,
+# jaxopt 0.8.5, tensorboardX 2.6.5 (device_recipe.sh says how they were downloaded).
+#
+#   T=300 B=360 R=3 TASKS="hopper ant" bash results/gpu/speed_recipe.sh
+#
+# Per task two processes: `python -m methods.ild.benchmark --rows forward,ild,ild_plain,chamfer
+# --no-apg` and `--rows apg`, all on the one GPU, holding one file lock (`--time-lock`)
+# exclusively around every timed section. Phase 1 starts the ILD processes together: they
+# compile side by side (16 CPU cores) and are timed one at a time, and nothing else runs on
+# the GPU. Phase 2 starts the APG processes together: each holds the lock shared over its
+# first two epochs (brax compiles and runs them in one call) and exclusively over the timed
+# third, so no timed section shares the GPU with another process's work. T bounds each
+# process (seconds); the rows each process finished are in its CSV and log, which come back
+# in $OUT/speed_logs.tgz.
+#
+# Session 34 ran it twice on one H200 (results/gpu/speed_session34, README): call 1 started
+# all 14 processes at once with no shared hold (APG's first epochs could share the GPU with a
+# timed section), T=400, every row but acrobot's APG (brax's trainer lacked the JAX shim
+# there; apg_epochs applies it since); call 2 started them at once with the shared hold and
+# ran out of time (T=355): timed sections waited for the slowest APG process's first epochs.
+# The two phases, as below, have not run on a GPU yet.
+T=${T:-300} B=${B:-360} R=${R:-3}
+TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
+mkdir -p /tmp/speed
+nvidia-smi --query-gpu=name,driver_version,memory.total,utilization.gpu --format=csv \
+    > /tmp/speed/machine.txt
+python3 -c "import jax, brax; print('jax', jax.__version__, jax.devices(), 'brax', \
+brax.__version__)" >> /tmp/speed/machine.txt 2>&1 || { cat /tmp/speed/machine.txt; exit 1; }
+cat /tmp/speed/machine.txt
+bm() { tag=$1; shift; timeout $T python3 -m methods.ild.benchmark --batch $B --repeats $R \
+    --chunk 1 --time-lock /tmp/speed/lock --out /tmp/speed/$tag.csv "$@" \
+    > /tmp/speed/$tag.log 2>&1; echo "$tag exit $?"; }
+(while true; do sleep 30; nvidia-smi --query-gpu=utilization.gpu,memory.used \
+    --format=csv,noheader; done) > /tmp/speed/smi.log 2>&1 &
+for phase in ild apg; do
+  pids=()
+  for t in $TASKS; do
+    if [ $phase = ild ]; then
+      bm ild_$t --task $t --rows forward,ild,ild_plain,chamfer --no-apg & pids+=($!)
+    else
+      bm apg_$t --task $t --rows apg & pids+=($!)
+    fi
+  done
+  wait "${pids[@]}"
+done
+grep -h "^{'task'" /tmp/speed/*.log
+tar czf $OUT/speed_logs.tgz -C /tmp speed
