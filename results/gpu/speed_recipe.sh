@@ -22,8 +22,8 @@
 # all 14 processes at once with no shared hold (APG's first epochs could share the GPU with a
 # timed section), T=400, every row but acrobot's APG (brax's trainer lacked the JAX shim
 # there; apg_epochs applies it since); call 2 started them at once with the shared hold and
-# ran out of time (T=355): timed sections waited for the slowest APG process's first epochs.
-# The two phases, as below, have not run on a GPU yet.
+# stalled (the GPU idle from 60 s to 240 s, every process at its T=355 limit; cause not
+# established). The two phases, as below, have not run on a GPU yet.
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
