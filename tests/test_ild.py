@@ -488,6 +488,36 @@ def test_benchmark_times_under_the_time_lock(tmp_path, monkeypatch):
         assert free._file is None
 
 
+def test_apg_epochs_leaves_out_the_two_warmup_epochs(monkeypatch):
+    """apg_epochs runs brax's APG for 2 warm-up epochs + `rounds` (the first compiles; on
+    JAX newer than the pin the second compiles again) and returns only the steady epochs'
+    'training/sps'; `after_epoch` runs after every epoch, warm-up ones included. brax's
+    train is faked: it reports an initial evaluation without sps, then one per epoch."""
+    from brax.training.agents.apg import train as apg
+    from methods.ild import benchmark
+    seen, after = {}, []
+
+    def fake_train(**kw):
+        seen.update(kw)
+        kw["progress_fn"](0, {"eval/episode_reward": 0.0})  # brax's first eval: no sps
+        for it in range(1, kw["num_evals"]):
+            kw["progress_fn"](it, {"training/sps": (23.0, 40.0, 4700.0, 4800.0)[it - 1]})
+    monkeypatch.setattr(apg, "train", fake_train)
+    task = make_task("pointmass")
+    assert benchmark.apg_epochs(task, 4, (8,), 3, 2, after.append) == [4700.0, 4800.0]
+    assert after == [1, 2, 3, 4]
+    assert (seen["policy_updates"], seen["num_evals"], seen["num_envs"]) == (12, 5, 4)
+    assert seen["horizon_length"] == task.episode_length
+    with pytest.raises(ValueError, match="rounds=0"):
+        benchmark.apg_epochs(task, 4, (8,), 3, 0)
+
+    def short_train(**kw):
+        kw["progress_fn"](1, {"training/sps": 1.0})
+    monkeypatch.setattr(apg, "train", short_train)
+    with pytest.raises(RuntimeError, match="for 1 epochs, expected 3"):
+        benchmark.apg_epochs(task, 4, (8,), 3, 1)
+
+
 def test_apg_is_timed_on_its_third_epoch_under_the_lock(tmp_path, monkeypatch):
     """brax's APG row: three epochs, the last one's steady-state env-steps/s (on newer JAX
     the second epoch compiles again: 23 env-steps/s against 4,700 on jax 0.10.2). The lock
@@ -499,14 +529,14 @@ def test_apg_is_timed_on_its_third_epoch_under_the_lock(tmp_path, monkeypatch):
     monkeypatch.setattr(benchmark, "TIME_LOCK", benchmark.TimingLock(path))
     states = []
 
-    def fake_apg(task, batch, hidden, updates, epochs, after_epoch):
-        assert (batch, updates, epochs) == (8, 2, 3)
+    def fake_apg(task, batch, hidden, updates, rounds, after_epoch):
+        assert (batch, updates, rounds) == (8, 2, 1)
         sps = []
-        for it in range(1, epochs + 1):
+        for it in range(1, benchmark.APG_WARMUP_EPOCHS + rounds + 1):
             states.append(_lock_state(path))  # while epoch `it` runs
             sps.append(100.0 * it)
             after_epoch(it)
-        return sps
+        return sps[benchmark.APG_WARMUP_EPOCHS:]
     monkeypatch.setattr(benchmark, "apg_epochs", fake_apg)
     assert benchmark._apg_sps(None, 8, (4,), 2) == 300.0
     assert states == ["shared", "shared", "exclusive"]
@@ -775,12 +805,11 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     from methods.ild import paired
     calls = []
 
-    def fake_apg(task, batch, hidden, updates, epochs, after_epoch):
-        for it in range(1, epochs + 1):  # brax reports every epoch, the first compiled
+    def fake_apg(task, batch, hidden, updates, rounds, after_epoch):
+        for it in range(1, 2 + rounds + 1):  # after_epoch runs after the 2 warm-up epochs too
             calls.append(it)
             after_epoch(it)
-        # the epochs after the first; paired drops the second too (it compiles on newer JAX)
-        return [batch * 128 / s for s in (9.0, 0.5, 0.25)]
+        return [batch * 128 / s for s in (0.5, 0.25)]  # the steady epochs only
 
     monkeypatch.setattr(paired, "apg_epochs", fake_apg)
     monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 1.0)

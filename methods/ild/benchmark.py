@@ -156,11 +156,20 @@ def vjp_of_ones(f):
     return vjp
 
 
-def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None):
-    """brax's own APG trainer (horizon 128, our network) for `epochs` epochs of `updates`
-    updates (brax times an epoch as one jitted scan; the first compiles): the steady-state
-    'training/sps' of each epoch after the first. `after_epoch(it)` runs between epochs,
-    outside brax's timing (methods.ild.paired times ILD's updates there)."""
+APG_WARMUP_EPOCHS = 2
+"""APG epochs that compile and are timed by nobody: brax compiles its epoch on the first call,
+and on JAX newer than the pin (0.10.2 checked with JAX_LOG_COMPILES) its pmapped epoch is
+compiled again on the second call, which then ran at 23 env-steps/s against 4,700 on the
+third. On the pinned JAX the second is already steady: dropping it costs one epoch and biases
+nothing."""
+
+
+def apg_epochs(task, batch, hidden, updates, rounds, after_epoch=lambda it: None):
+    """brax's own APG trainer (horizon 128, our network): APG_WARMUP_EPOCHS + `rounds` epochs
+    of `updates` updates each (brax times an epoch as one jitted scan). Returns the
+    'training/sps' of the `rounds` steady epochs, the warm-up ones left out. `after_epoch(it)`
+    runs after every epoch, warm-up ones included, outside brax's timing
+    (methods.ild.paired times ILD's updates there; _apg_sps takes the timing lock)."""
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as apg
     from flax import linen
@@ -168,6 +177,9 @@ def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None
     from tasks.jax_compat import apply as jax_compat
     jax_compat()  # brax's trainer on a newer JAX, whatever the task's env (acrobot is ours)
 
+    if rounds < 1:
+        raise ValueError(f"apg_epochs: rounds={rounds}; at least 1 steady epoch is timed")
+    epochs = APG_WARMUP_EPOCHS + rounds
     sps = []
 
     def factory(obs_size, action_size, preprocess_observations_fn):
@@ -184,28 +196,28 @@ def apg_epochs(task, batch, hidden, updates, epochs, after_epoch=lambda it: None
               policy_updates=epochs * updates, horizon_length=task.episode_length,
               num_envs=batch, num_evals=epochs + 1,
               num_eval_envs=batch, network_factory=factory, progress_fn=progress)
-    return sps[1:]
+    if len(sps) != epochs:
+        raise RuntimeError(f"brax's APG reported 'training/sps' for {len(sps)} epochs, "
+                           f"expected {epochs}: its progress_fn contract changed")
+    return sps[APG_WARMUP_EPOCHS:]
 
 
-def _apg_sps(task, batch, hidden, repeats, epochs: int = 3):
-    # `epochs` epochs of `repeats` updates each, the last timed over `repeats` updates, as
-    # ILD's rows are. The first compiles; on newer JAX (0.10.2 checked with JAX_LOG_COMPILES:
-    # brax's pmapped epoch is compiled again on its second call, which then ran at 23 env
-    # steps/s against 4,700 on the third) the second compiles too; on the pinned JAX the
-    # second is already steady. The timing lock is held shared until the end of the
-    # next-to-last epoch (those epochs compile and run in one call: no other process's timed
-    # section runs beside them) and exclusively over the last (brax times it in apg.train).
+def _apg_sps(task, batch, hidden, repeats):
+    # One steady epoch of `repeats` updates, timed as ILD's rows are, after the
+    # APG_WARMUP_EPOCHS that compile. The timing lock is held shared over the warm-up
+    # epochs (they compile and run in one call: no other process's timed section runs
+    # beside them) and exclusively over the steady one (brax times it in apg.train).
     ends = []
 
     def after_epoch(it):
         ends.append(it)
-        if len(ends) == epochs - 1:
+        if len(ends) == APG_WARMUP_EPOCHS:
             TIME_LOCK.acquire()  # shared -> exclusive
-        elif len(ends) == epochs:
+        elif len(ends) == APG_WARMUP_EPOCHS + 1:
             TIME_LOCK.release()
     TIME_LOCK.acquire(shared=True)
     try:
-        return apg_epochs(task, batch, hidden, repeats, epochs, after_epoch)[-1]
+        return apg_epochs(task, batch, hidden, repeats, 1, after_epoch)[0]
     finally:
         TIME_LOCK.release()
 

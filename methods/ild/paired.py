@@ -91,11 +91,9 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
     apg_task = with_small_dots(task) if on_dots else task
-    # Two epochs before the timed rounds: the first compiles, and on JAX newer than the
-    # pinned one brax's pmapped epoch is compiled again on its second call (the benchmark's
-    # _apg_sps: 23 env-steps/s against 4,700 on the third, jax 0.10.2). Dropping it on the
-    # pinned JAX costs one epoch and biases nothing.
-    sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds + 2, time_ild)[1:]
+    # apg_epochs leaves out APG's warm-up epochs (they compile); time_ild runs after those
+    # too, and only its last `rounds` timings, made beside APG's steady epochs, are rounds.
+    sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
     apg_s = [steps / x for x in sps]
     ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
     settings = speed_settings()
