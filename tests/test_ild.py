@@ -625,16 +625,20 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
 
 
 @pytest.mark.slow
-def test_truncated_gradient_points_uphill_on_inverted_pendulum():
+def test_full_bptt_is_closer_to_the_true_gradient_on_inverted_pendulum():
     """Why inverted_pendulum overrides truncation (methods/ild/config.py): from the BC warm
-    start the truncated (window 10) gradient opposes the true one; full BPTT follows it.
-    ~10 minutes on one CPU core (BC warm starts and full-BPTT compiles)."""
+    start the update's gradient at truncation 128 (per-step normalization on) is closer to
+    the true gradient than at truncation 10. Only the order is asserted: the cosines depend
+    on round-off in the 1,000-step BC warm start, so on the CPU thread count (session 36,
+    B = 16: one thread 0.869 at 10 vs 0.999 at 128, two threads 0.316 vs 0.781; session 9's
+    -0.992 vs 1.000 at B = 32). ~7 minutes on the CPU (BC warm starts, full-BPTT compiles)."""
     from methods.ild.probe import probe
     task = make_task("inverted_pendulum")
     demo = load_demo(task.spec.demo_path, task)
     short = probe(task, demo, ILDConfig(num_envs=16, truncation=10), eps=(1e-4,), lrs=(1e-5,))
     full = probe(task, demo, ILDConfig(num_envs=16, truncation=128), eps=(1e-4,), lrs=(1e-5,))
-    assert short["cosine"] < -0.5 and full["cosine"] > 0.99
+    assert full["loss"] == short["loss"]  # the same warm start and rollouts
+    assert full["cosine"] > short["cosine"]
 
 
 def test_probe_without_joint_limits_lets_a_joint_pass_its_range():

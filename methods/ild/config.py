@@ -157,9 +157,12 @@ TASK_OVERRIDES: dict[str, dict] = {
     # drops (how a push now tips the pole later) outweigh and oppose those it keeps: from the
     # BC warm start the truncated gradient's cosine with the true one is -0.992 at truncation
     # 10 and -0.993 at 1, 1.000 at 128 (`python -m methods.ild.probe --task
-    # inverted_pendulum --num-envs 32 --truncation W`). With truncation 10 ILD climbed its own
-    # loss (0.05 -> 1-3) and fell from 1.00 to 0.841, 0.933, 0.450 (grid, 3 min cpu); with
-    # 128 the loss falls (0.051 -> 0.024) and the score stays 1.000 (README ILD section).
+    # inverted_pendulum --num-envs 32 --truncation W`, session 9). Those cosines move with
+    # round-off in the BC warm start (session 36, B = 16: 0.869 vs 0.999 on one CPU thread,
+    # 0.316 vs 0.781 on two); 128 stayed the closer. The runs are the firmer reason: with
+    # truncation 10 ILD climbed its own loss (0.05 -> 1-3) and fell from 1.00 to 0.841, 0.933,
+    # 0.450 (grid, 3 min cpu); with 128 the loss falls (0.051 -> 0.024) and the score stays
+    # 1.000 (README ILD section).
     "inverted_pendulum": {"truncation": 128},
     # acrobot: full BPTT too. From the BC warm start the truncation-10 gradient's cosine with
     # the true one is -0.389 and Adam's first step along it raises the loss (lr 1e-3: 2.00x),
