@@ -807,10 +807,11 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     each round's ratio is APG's seconds per update over the variant's, from that round; APG's
     first two epochs (compiles, on newer JAX both) are no round."""
     from methods.ild import paired
+    from methods.ild.benchmark import APG_WARMUP_EPOCHS
     calls = []
 
     def fake_apg(task, batch, hidden, updates, rounds, after_epoch):
-        for it in range(1, 2 + rounds + 1):  # after_epoch runs after the 2 warm-up epochs too
+        for it in range(1, APG_WARMUP_EPOCHS + rounds + 1):  # after the warm-up epochs too
             calls.append(it)
             after_epoch(it)
         return [batch * 128 / s for s in (0.5, 0.25)]  # the steady epochs only

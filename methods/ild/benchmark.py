@@ -170,6 +170,8 @@ def apg_epochs(task, batch, hidden, updates, rounds, after_epoch=lambda it: None
     'training/sps' of the `rounds` steady epochs, the warm-up ones left out. `after_epoch(it)`
     runs after every epoch, warm-up ones included, outside brax's timing
     (methods.ild.paired times ILD's updates there; _apg_sps takes the timing lock)."""
+    if rounds < 1:
+        raise ValueError(f"apg_epochs: rounds={rounds}; at least 1 steady epoch is timed")
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as apg
     from flax import linen
@@ -177,8 +179,6 @@ def apg_epochs(task, batch, hidden, updates, rounds, after_epoch=lambda it: None
     from tasks.jax_compat import apply as jax_compat
     jax_compat()  # brax's trainer on a newer JAX, whatever the task's env (acrobot is ours)
 
-    if rounds < 1:
-        raise ValueError(f"apg_epochs: rounds={rounds}; at least 1 steady epoch is timed")
     epochs = APG_WARMUP_EPOCHS + rounds
     sps = []
 
