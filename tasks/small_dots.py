@@ -84,6 +84,22 @@ def _eval(jaxpr: core.Jaxpr, consts, args, max_terms: int) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
+def _rewritten(param, max_terms: int):
+    """A primitive's parameter with every closed jaxpr in it (scan's and while's bodies,
+    cond's branches) replaced by its rewrite, traced on the same input types; other
+    parameters as they are. The primitive is then bound with its own parameters, whatever
+    JAX names them (jax 0.11 renamed scan's `num_consts`, which a call of lax.scan with the
+    split operands needed)."""
+    if isinstance(param, tuple) and param and all(isinstance(b, core.ClosedJaxpr)
+                                                  for b in param):
+        return tuple(_rewritten(b, max_terms) for b in param)
+    if not isinstance(param, core.ClosedJaxpr):
+        return param
+    args = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+            for a in param.in_avals]
+    return jax.make_jaxpr(_fun(param, max_terms))(*args)
+
+
 def _eval_eqn(eqn, invals, max_terms: int):
     name, p = eqn.primitive.name, eqn.params
     if name == "dot_general" and _small(eqn, max_terms):
@@ -91,33 +107,23 @@ def _eval_eqn(eqn, invals, max_terms: int):
     if name in ("jit", "pjit", "closed_call", "core_call"):
         return _fun(p["jaxpr"] if isinstance(p["jaxpr"], core.ClosedJaxpr)
                     else core.ClosedJaxpr(p["jaxpr"], ()), max_terms)(*invals)
-    if name == "scan":
-        nc, nk = p["num_consts"], p["num_carry"]
-        body = _fun(p["jaxpr"], max_terms)
-        consts, init, xs = invals[:nc], invals[nc:nc + nk], invals[nc + nk:]
-
-        def step(carry, x):
-            out = body(*consts, *carry, *x)
-            return out[:nk], out[nk:]
-
-        carry, ys = lax.scan(step, list(init), list(xs), length=p["length"],
-                             reverse=p["reverse"], unroll=p["unroll"])
-        return [*carry, *ys]
-    if name == "while":
-        cn, bn = p["cond_nconsts"], p["body_nconsts"]
-        cond, body = _fun(p["cond_jaxpr"], max_terms), _fun(p["body_jaxpr"], max_terms)
-        cc, bc, init = invals[:cn], invals[cn:cn + bn], invals[cn + bn:]
-        return lax.while_loop(lambda c: cond(*cc, *c)[0], lambda c: body(*bc, *c),
-                              list(init))
+    if name in ("scan", "while", "cond"):  # bodies rewritten in place, bound as they were
+        return eqn.primitive.bind(*invals, **{k: _rewritten(v, max_terms)
+                                              for k, v in p.items()})
     if name in ("checkpoint", "remat2"):  # jax.checkpoint (jax 0.7 names it remat2)
         inner = core.ClosedJaxpr(p["jaxpr"], ())
         return jax.checkpoint(_fun(inner, max_terms), prevent_cse=p["prevent_cse"],
                               policy=p["policy"])(*invals)
-    if name == "cond":
-        branches = [_fun(b, max_terms) for b in p["branches"]]
-        return lax.switch(invals[0], [lambda *a, f=f: f(*a) for f in branches], *invals[1:])
-    subfuns, params = eqn.primitive.get_bind_params(p)
+    subfuns, params = _bind_params(eqn.primitive, p)
     return eqn.primitive.bind(*subfuns, *invals, **params)
+
+
+def _bind_params(primitive, params) -> tuple:
+    """(subfuns, params) to bind `primitive` with: jax 0.7's `get_bind_params` returns that
+    pair, jax 0.11's the parameters alone (the rewrite failed on jax 0.11.2 until it took
+    both)."""
+    bind = primitive.get_bind_params(params)
+    return ((), bind) if isinstance(bind, dict) else tuple(bind)
 
 
 def small_dots_as_sums(f, max_terms: int = MAX_TERMS):

@@ -781,6 +781,30 @@ def test_speed_benchmark_runs_the_rows_asked_for():
         run("pointmass", batch=4, repeats=1, with_apg=False, only=("forward", "nope"))
 
 
+def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):
+    """'dots' is four rows, each a group of its own: a GPU call times ild_substep_dots in the
+    ILD process and apg_dots in the APG process. apg_dots alone runs brax's APG on the
+    rewritten physics (`with_small_dots`: the env's pipeline_step replaced) and nothing
+    else; apg runs it on brax's own; pointmass (no brax step) leaves the dots rows out."""
+    from methods.ild import benchmark
+    assert benchmark.expand_rows(("forward", "dots", "apg_dots", "apg")) == (
+        "forward", "forward_dots", "ild_dots", "ild_substep_dots", "apg_dots", "apg")
+    assert benchmark.expand_rows(("ild_substep_dots",)) == ("ild_substep_dots",)
+    timed = []
+    monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
+    monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (
+        timed.append("pipeline_step" in vars(task.env.unwrapped)) or 1000.0))
+    rows = benchmark.run("hopper", batch=2, repeats=3, only=("apg_dots",))
+    assert [r["what"] for r in rows] == ["apg_dots"] and timed == [True]
+    assert rows[0]["seconds"] == pytest.approx(2 * 128 / 1000.0)
+    rows = benchmark.run("hopper", batch=2, repeats=3, only=("apg", "apg_dots"))
+    assert [r["what"] for r in rows] == ["apg", "apg_dots"] and timed == [True, False, True]
+    assert benchmark.run("pointmass", batch=2, repeats=1, with_apg=False,
+                         only=("apg_dots", "ild_substep_dots")) == []
+    with pytest.raises(ValueError, match="unknown benchmark rows.*'apg_dot'"):
+        benchmark.run("hopper", batch=2, repeats=1, only=("apg_dot",))
+
+
 def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     # Rows timed under another XLA code generator are not comparable: the CSV says which.
     import pandas as pd

@@ -171,3 +171,25 @@ def test_small_dots_swimmer_is_the_same_physics_and_gradient():
     (v2, g2), (v3, g3) = _three_steps(free, s0, acts), _three_steps(both, s0, acts)
     assert float(v3) == pytest.approx(float(v2), rel=1e-5)
     np.testing.assert_allclose(g3, g2, rtol=1e-3, atol=1e-5)
+
+
+
+def test_rewrite_binds_primitives_under_either_get_bind_params_contract():
+    """jax 0.7's `Primitive.get_bind_params` returns (subfuns, params), jax 0.11's the params
+    alone (the rewrite failed on the GPU image's jax 0.11.2 until it took both): either way
+    the rewrite binds with the subfuns and the parameters the primitive gave back, and
+    jax 0.7's own primitives still answer with the pair."""
+    from tasks.small_dots import _bind_params
+
+    class Old:
+        def get_bind_params(self, params):
+            return ["f"], {**params, "extra": 1}
+
+    class New:
+        def get_bind_params(self, params):
+            return {k: v for k, v in params.items() if k != "drop"}
+
+    assert _bind_params(Old(), {"a": 2}) == (["f"], {"a": 2, "extra": 1})
+    assert _bind_params(New(), {"a": 2, "drop": 3}) == ((), {"a": 2})
+    subfuns, params = _bind_params(lax.sin_p, {"accuracy": None})
+    assert list(subfuns) == [] and params == {"accuracy": None}

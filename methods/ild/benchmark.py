@@ -21,7 +21,7 @@ rows:
                (`--set small_dots=true`, `tasks.core.with_small_dots`; brax tasks only):
                forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
                (brax's APG on the same rewritten physics, so the ILD / APG ratio compares
-               like with like)
+               like with like); each of the four is also a row group of its own
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -207,10 +207,12 @@ def _apg_sps(task, batch, hidden, repeats):
     # APG_WARMUP_EPOCHS that compile. The timing lock is held shared over the warm-up
     # epochs (they compile and run in one call: no other process's timed section runs
     # beside them) and exclusively over the steady one (brax times it in apg.train).
-    ends = []
+    ends, t0 = [], time.perf_counter()
 
     def after_epoch(it):
         ends.append(it)
+        print(f"apg: epoch {len(ends)} of {APG_WARMUP_EPOCHS + 1} done "
+              f"{time.perf_counter() - t0:.1f} s after the start", flush=True)
         if len(ends) == APG_WARMUP_EPOCHS:
             TIME_LOCK.acquire()  # shared -> exclusive
         elif len(ends) == APG_WARMUP_EPOCHS + 1:
@@ -240,7 +242,10 @@ ROWS = ("forward", "ild", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep", 
         "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "untransposed", "step",
         "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
-'policy' are the forward + VJP pairs)."""
+'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS)."""
+DOTS_ROWS = ("forward_dots", "ild_dots", "ild_substep_dots", "apg_dots")
+"""The small-dots rows, each selectable alone (a GPU call that times ILD's rows and APG's in
+separate processes asks for ild_substep_dots in one and apg_dots in the other)."""
 SUBSTEP_ROWS = ("ild_plain", "ild_substep", "ild_both", "ild_substep_chunk")
 """Row groups that differ from `ild` only where a task has brax's substep loop: left out
 elsewhere (pointmass), where they would time the same update again."""
@@ -248,9 +253,20 @@ elsewhere (pointmass), where they would time the same update again."""
 
 def check_rows(only) -> None:
     """ValueError naming any of `only` that is not a row group of ROWS."""
-    unknown = set(only) - set(ROWS)
+    unknown = set(only) - set(ROWS) - set(DOTS_ROWS)
     if unknown:
-        raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from {ROWS}")
+        raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from "
+                         f"{ROWS + DOTS_ROWS}")
+
+
+def expand_rows(only) -> tuple[str, ...]:
+    """`only` with the group 'dots' replaced by its rows (DOTS_ROWS), order kept, no repeats."""
+    out = []
+    for r in only:
+        for x in (DOTS_ROWS if r == "dots" else (r,)):
+            if x not in out:
+                out.append(x)
+    return tuple(out)
 
 
 def speed_setup(task, config: ILDConfig):
@@ -269,6 +285,7 @@ def speed_setup(task, config: ILDConfig):
 def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         chunk: int = 4, only: tuple[str, ...] = ROWS) -> list[dict]:
     check_rows(only)
+    only = expand_rows(only)
     task = make_task(task_name)
     T = task.episode_length
     base = ILDConfig(num_envs=batch)
@@ -298,16 +315,16 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     remat = dataclasses.replace(plain, remat=True)
     substep = dataclasses.replace(plain, substep_remat=True)
     dots = dataclasses.replace(plain, small_dots=True)
-    if "dots" in only:
+    dots_task = None
+    if set(DOTS_ROWS) & set(only):
         try:
             dots_task = rollout_physics(task, dots)
         except ValueError as e:  # small_dots on a task with no brax physics step
             print(f"dots: left out on {task_name}: {e}", flush=True)
-            only = tuple(r for r in only if r != "dots")
-        else:
-            fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
-            row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,),
-                                      repeats))
+            only = tuple(r for r in only if r not in DOTS_ROWS)
+    if "forward_dots" in only:
+        fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
+        row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,), repeats))
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
@@ -318,8 +335,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_chunk", f"ild_chunk{chunk}", base, chunk),
             ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
             ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk),
-            ("dots", "ild_dots", dots, 1),
-            ("dots", "ild_substep_dots", dataclasses.replace(substep, small_dots=True), 1),
+            ("ild_dots", "ild_dots", dots, 1),
+            ("ild_substep_dots", "ild_substep_dots",
+             dataclasses.replace(substep, small_dots=True), 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -367,20 +385,18 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         cham = jax.value_and_grad(lambda x: jnp.mean(jax.vmap(
             lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
         row("chamfer", _time(cham, (x,), repeats))
-    with_apg = with_apg and "apg" in only
-    if with_apg and reward_gradient_norm(task) == 0.0:
+    apg_rows = [(name, physics) for name, physics in
+                (("apg", task), ("apg_dots", dots_task))
+                if with_apg and name in only]  # apg_dots: the same trainer on the same
+    # rewritten physics as ild_*_dots, so their ratio compares like with like
+    if apg_rows and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
-        with_apg = False
-    if with_apg:
+        apg_rows = []
+    for name, physics in apg_rows:
         t0 = time.perf_counter()
-        sps = _apg_sps(task, batch, base.hidden, repeats)
-        row("apg", None, per_call=repeats, sec=steps / sps, compile_s=time.perf_counter() - t0)
-        if "dots" in only:  # the same trainer on the same rewritten physics as ild_*_dots
-            t0 = time.perf_counter()
-            sps = _apg_sps(dots_task, batch, base.hidden, repeats)
-            row("apg_dots", None, per_call=repeats, sec=steps / sps,
-                compile_s=time.perf_counter() - t0)
+        sps = _apg_sps(physics, batch, base.hidden, repeats)
+        row(name, None, per_call=repeats, sec=steps / sps, compile_s=time.perf_counter() - t0)
     by = {r["what"]: r for r in rows}
     ratios = {}
 
@@ -430,7 +446,8 @@ def main(argv=None):
                    help="updates per call of the ild_chunkK rows (1: leave them out)")
     p.add_argument("--no-apg", action="store_true")
     p.add_argument("--rows", default=",".join(ROWS),
-                   help=f"comma-separated row groups to run (default all: {','.join(ROWS)})")
+                   help=f"comma-separated row groups to run (default all: {','.join(ROWS)}; "
+                        f"'dots' is {','.join(DOTS_ROWS)}, each also alone)")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     p.add_argument("--time-lock", default=None, metavar="PATH",
                    help="hold an exclusive lock on PATH around each timed section: several "

@@ -22,10 +22,29 @@
 # all 14 processes at once with no shared hold (APG's first epochs could share the GPU with a
 # timed section), T=400, every row but acrobot's APG (brax's trainer lacked the JAX shim
 # there; apg_epochs applies it since); call 2 started them at once with the shared hold and
-# stalled (the GPU idle from 60 s to 240 s, every process at its T=355 limit; cause not
-# established). The two phases, as below, have not run on a GPU yet.
+# stalled (the GPU idle from 60 s to 240 s, every process at its T=355 limit).
+#
+# Session 37 (one H200, results/gpu/speed_session37): call 1 ran the two phases on all
+# seven tasks with ILD_ROWS=forward,ild, T=265: the ILD phase finished in 106 s, and none of
+# the 8 APG processes of phase 2 finished (GPU mostly idle, as in session 34's call 2). The
+# lock does not deadlock (flock converts shared -> exclusive by dropping the shared hold
+# first); each timed epoch waits for every other process's warm-up, which with 8 processes
+# compiling at once did not end in time. Call 2 ran 2 APG processes (hopper, acrobot) beside
+# swimmer's ILD process: both finished in 114 s (their epoch log: apg_epochs_call2.log).
+# Hence APG_GROUP (default 2): APG processes start in groups of that size.
+#
+# Session 37 (ILD_ROWS, DOTS_TASKS): ILD_ROWS replaces the ILD processes' rows (default
+# forward,ild,ild_plain,chamfer); each task in DOTS_TASKS adds forward_dots,ild_substep_dots
+# to its ILD process and a second APG process with --rows apg_dots (brax's APG on the same
+# small-dots physics), e.g.
+#   T=270 TASKS="hopper acrobot swimmer" ILD_ROWS=forward,ild DOTS_TASKS=swimmer bash ...
+# ILD_TASKS / APG_TASKS (default TASKS) pick the tasks of each phase. TOGETHER=1 starts
+# the APG processes with the ILD ones (one phase; the lock still keeps every timed section
+# alone on the GPU, but a timed section waits for every APG warm-up).
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
+ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
+ILD_TASKS=${ILD_TASKS:-$TASKS} APG_TASKS=${APG_TASKS:-$TASKS} APG_GROUP=${APG_GROUP:-2}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
@@ -38,18 +57,28 @@ cat /tmp/speed/machine.txt
 bm() { tag=$1; shift; timeout $T python3 -m methods.ild.benchmark --batch $B --repeats $R \
     --chunk 1 --time-lock /tmp/speed/lock --out /tmp/speed/$tag.csv "$@" \
     > /tmp/speed/$tag.log 2>&1; echo "$tag exit $?"; }
-(while true; do sleep 30; nvidia-smi --query-gpu=utilization.gpu,memory.used \
+(while true; do sleep 10; nvidia-smi --query-gpu=utilization.gpu,memory.used \
     --format=csv,noheader; done) > /tmp/speed/smi.log 2>&1 &
+pids=() group=()
 for phase in ild apg; do
-  pids=()
-  for t in $TASKS; do
+  [ -z "$TOGETHER" ] && pids=()
+  echo "phase $phase starts $(date +%T)"
+  tasks=$ILD_TASKS; [ $phase = apg ] && tasks=$APG_TASKS
+  for t in $tasks; do
+    dots=no; [[ " $DOTS_TASKS " == *" $t "* ]] && dots=yes
     if [ $phase = ild ]; then
-      bm ild_$t --task $t --rows forward,ild,ild_plain,chamfer --no-apg & pids+=($!)
+      rows=$ILD_ROWS; [ $dots = yes ] && rows=$rows,forward_dots,ild_substep_dots
+      bm ild_$t --task $t --rows $rows --no-apg & pids+=($!)
     else
-      bm apg_$t --task $t --rows apg & pids+=($!)
+      bm apg_$t --task $t --rows apg & pids+=($!) group+=($!)
+      [ $dots = yes ] && { bm apg_dots_$t --task $t --rows apg_dots & pids+=($!) group+=($!); }
+      # at most APG_GROUP APG processes at a time (each timed epoch waits for every warm-up)
+      [ ${#group[@]} -ge $APG_GROUP ] && { wait "${group[@]}"; group=(); }
     fi
   done
+  [ -n "$TOGETHER" ] && [ $phase = ild ] && continue  # one phase: all processes at once
   wait "${pids[@]}"
+  echo "phase $phase ends $(date +%T)"
 done
 grep -h "^{'task'" /tmp/speed/*.log
 tar czf $OUT/speed_logs.tgz -C /tmp speed
