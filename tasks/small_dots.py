@@ -88,8 +88,8 @@ def _rewritten(param, max_terms: int):
     """A primitive's parameter with every closed jaxpr in it (scan's and while's bodies,
     cond's branches) replaced by its rewrite, traced on the same input types; other
     parameters as they are. The primitive is then bound with its own parameters, whatever
-    JAX names them (jax 0.11 renamed scan's `num_consts`, which a call of lax.scan with the
-    split operands needed)."""
+    JAX names them (jax 0.11.2's scan has no `num_consts` parameter, which re-calling
+    lax.scan on the split operands needed; checked on the GPU image in session 37)."""
     if isinstance(param, tuple) and param and all(isinstance(b, core.ClosedJaxpr)
                                                   for b in param):
         return tuple(_rewritten(b, max_terms) for b in param)
