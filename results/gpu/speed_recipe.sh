@@ -12,9 +12,10 @@
 # --no-apg` and `--rows apg`, all on the one GPU, holding one file lock (`--time-lock`)
 # exclusively around every timed section. Phase 1 starts the ILD processes together: they
 # compile side by side (16 CPU cores) and are timed one at a time, and nothing else runs on
-# the GPU. Phase 2 starts the APG processes together: each holds the lock shared over its
-# first two epochs (brax compiles and runs them in one call) and exclusively over the timed
-# third, so no timed section shares the GPU with another process's work. T bounds each
+# the GPU. Phase 2 starts the APG processes, APG_GROUP at a time: each holds the lock
+# shared over its first two epochs (brax compiles and runs them in one call) and
+# exclusively over the timed third, so no timed section shares the GPU with another
+# process's work. T bounds each
 # process (seconds); the rows each process finished are in its CSV and log, which come back
 # in $OUT/speed_logs.tgz.
 #
@@ -72,7 +73,8 @@ for phase in ild apg; do
     else
       bm apg_$t --task $t --rows apg & pids+=($!) group+=($!)
       [ $dots = yes ] && { bm apg_dots_$t --task $t --rows apg_dots & pids+=($!) group+=($!); }
-      # at most APG_GROUP APG processes at a time (each timed epoch waits for every warm-up)
+      # APG_GROUP APG processes at a time (a DOTS_TASKS pair may make it one more): each
+      # timed epoch waits for every warm-up running beside it
       [ ${#group[@]} -ge $APG_GROUP ] && { wait "${group[@]}"; group=(); }
     fi
   done
