@@ -641,7 +641,6 @@ def test_full_bptt_is_closer_to_the_true_gradient_on_inverted_pendulum():
     assert full["cosine"] > short["cosine"]
 
 
-
 class _LossLog:
     """The smallest training context: records each report's metrics, never stops."""
 

@@ -173,7 +173,6 @@ def test_small_dots_swimmer_is_the_same_physics_and_gradient():
     np.testing.assert_allclose(g3, g2, rtol=1e-3, atol=1e-5)
 
 
-
 def test_rewrite_binds_primitives_under_either_get_bind_params_contract():
     """jax 0.7's `Primitive.get_bind_params` returns (subfuns, params), jax 0.11's the params
     alone (the rewrite failed on the GPU image's jax 0.11.2 until it took both): either way
