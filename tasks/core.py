@@ -229,6 +229,55 @@ def with_substep_remat(task: Task) -> Task:
     return _like(task, Task(spec=task.spec, env=env))
 
 
+def has_closed_form_adjoint(task: Task) -> bool:
+    """Whether `task`'s env writes its control step in closed form (`closed_form_step`:
+    acrobot), which `with_closed_form_adjoint` differentiates instead of brax's step."""
+    return callable(getattr(task.env.unwrapped, "closed_form_step", None))
+
+
+def with_closed_form_adjoint(task: Task) -> Task:
+    """A fresh copy of `task` whose physics step runs brax's own step forward (the same values
+    bit for bit) and, in reverse mode, the VJP of the env's `closed_form_step` (a double
+    pendulum's equations of motion for acrobot) instead of brax's: the same derivative to
+    float32 round-off, from a few dozen scalar operations per substep rather than the
+    reverse of brax's general articulated-body algebra. The step is taken as a function of
+    (q, qd, action), as its closed form is: cotangents of the output's position and
+    velocity (`q`, `qd`, `x`, `xd`) go back to the input's `q`, `qd` and the action; the
+    step's other outputs (inertia, mass matrix, bias forces, ...) are functions of q and qd
+    that the next step recomputes in the closed form, so they carry none. Errors for a task
+    without a closed form."""
+    if not has_closed_form_adjoint(task):
+        raise ValueError(f"task {task.name!r} has no closed-form step (closed_form_adjoint is "
+                         "for tasks whose env defines closed_form_step: acrobot; leave it "
+                         "False)")
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
+    if "pipeline_step" in vars(given):
+        raise ValueError(f"task {task.name!r} already has its own physics step (a "
+                         "with_substep_remat or with_small_dots copy); apply "
+                         "with_closed_form_adjoint to the task itself")
+    inner.sys = given.sys
+    brax_step = inner.pipeline_step  # the class's, before the instance's below
+    jax.eval_shape(inner.closed_form_step,  # refuses a scene it does not model, now
+                   *(jax.ShapeDtypeStruct((n,), jnp.float32) for n in
+                     (inner.sys.q_size(), inner.sys.qd_size(), inner.sys.act_size())))
+
+    @jax.custom_vjp
+    def step(q, qd, action, rest):
+        return brax_step(rest.replace(q=q, qd=qd), action)
+
+    def fwd(q, qd, action, rest):
+        return step(q, qd, action, rest), (q, qd, action)
+
+    def bwd(res, ct):
+        _, vjp = jax.vjp(inner.closed_form_step, *res)
+        return (*vjp((ct.q, ct.qd, ct.x.pos, ct.x.rot, ct.xd.vel, ct.xd.ang)), None)
+
+    step.defvjp(fwd, bwd)
+    inner.pipeline_step = lambda ps, action: step(ps.q, ps.qd, action, ps)
+    return _like(task, Task(spec=task.spec, env=env))
+
+
 def with_small_dots(task: Task) -> Task:
     """A fresh copy of brax task `task` (same `sys`; composes with `without_joint_limits` and
     `with_substep_remat` copies) whose physics step computes its small matrix products as

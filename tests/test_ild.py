@@ -81,6 +81,28 @@ def test_normalize_grad_forward_identity_backward_clipped():
     assert normalize_grad(tree)["i"].dtype == jnp.int32  # int leaves pass through
 
 
+def test_observed_cotangent_norms_are_the_normalizers_inputs():
+    """observe_cotangent_norms (the probe's count of what the per-step normalizer clips)
+    reports each cotangent's norm before clipping, per vmapped example, and only in
+    functions traced while it is installed."""
+    from methods.ild.losses import observe_cotangent_norms
+    x = jnp.array([[3.0, 4.0], [1.0, 1.0]])
+    w = jnp.array([[30.0, 40.0], [0.3, 0.4]])  # cotangents of norm 50 and 0.5
+
+    def f(x):
+        return jnp.sum(jax.vmap(normalize_grad)(x) * w)
+
+    seen = []
+    with observe_cotangent_norms(seen.append):
+        g = jax.jit(jax.grad(f))(x)
+        jax.effects_barrier()
+    np.testing.assert_allclose(sorted(np.ravel(seen)), [0.5, 50.0], rtol=1e-6)
+    np.testing.assert_allclose(g, [[0.6, 0.8], [0.3, 0.4]], rtol=1e-6)
+    jax.block_until_ready(jax.jit(jax.grad(lambda x: f(x) * 2.0))(x))  # traced outside
+    jax.effects_barrier()
+    assert len(np.ravel(seen)) == 2
+
+
 # --- the full rollout loss on pointmass -------------------------------------------------
 
 class _ModePolicy(TanhGaussianPolicy):
@@ -845,6 +867,22 @@ def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):
         benchmark.run("hopper", batch=2, repeats=1, only=("apg_dot",))
 
 
+def test_speed_benchmark_times_apg_through_the_closed_form_backward(monkeypatch):
+    """'closed_form' is two rows, each a group of its own: apg_closed_form runs brax's APG on
+    acrobot's closed-form-adjoint physics (like with like for ild_closed_form); tasks with
+    no closed-form step (hopper) leave both rows out."""
+    from methods.ild import benchmark
+    assert benchmark.expand_rows(("closed_form", "apg")) == (
+        "ild_closed_form", "apg_closed_form", "apg")
+    timed = []
+    monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
+    monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (
+        timed.append("pipeline_step" in vars(task.env.unwrapped)) or 1000.0))
+    rows = benchmark.run("acrobot", batch=2, repeats=3, only=("apg", "apg_closed_form"))
+    assert [r["what"] for r in rows] == ["apg", "apg_closed_form"] and timed == [False, True]
+    assert benchmark.run("hopper", batch=2, repeats=1, only=("closed_form",)) == []
+
+
 def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     # Rows timed under another XLA code generator are not comparable: the CSV says which.
     import pandas as pd
@@ -905,10 +943,15 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     for variants, match in (
             (["chunk=2", "hidden=[64]"], r"'hidden=\[64\]' sets hidden=\(64,\).*one network"),
             (["num_envs=64"], r"'num_envs=64' sets num_envs=64.*--batch \(now 4\)"),
-            (["small_dots", "remat"], r"\['small_dots'\] set small_dots and \['remat'\]")):
+            (["small_dots", "remat"], r"\['small_dots'\] set small_dots and \['remat'\]"),
+            (["closed_form_adjoint", "chunk=2"],
+             r"\['closed_form_adjoint'\] set closed_form_adjoint and \['chunk=2'\]")):
         with pytest.raises(ValueError, match=match):  # refused before any task is built
             paired.run("no_such_task", variants, batch=4, rounds=1, repeats=1)
     base = paired.ILDConfig(num_envs=4)
-    assert paired.apg_on_small_dots({v: paired.parse_variant(v, 4) for v in
-                                     ("small_dots", "small_dots,chunk=2")}, base)
-    assert not paired.apg_on_small_dots({"chunk=2": paired.parse_variant("chunk=2", 4)}, base)
+    assert paired.apg_physics({v: paired.parse_variant(v, 4) for v in
+                               ("small_dots", "small_dots,chunk=2")}, base) == "small_dots"
+    assert paired.apg_physics({v: paired.parse_variant(v, 4) for v in
+                               ("closed_form_adjoint", "closed_form_adjoint,chunk=2")},
+                              base) == "closed_form_adjoint"
+    assert paired.apg_physics({"chunk=2": paired.parse_variant("chunk=2", 4)}, base) == "brax"

@@ -22,6 +22,10 @@ rows:
                forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
                (brax's APG on the same rewritten physics, so the ILD / APG ratio compares
                like with like); each of the four is also a row group of its own
+  closed_form  the physics differentiated through the task's closed-form step
+               (`--set closed_form_adjoint=true`, `tasks.core.with_closed_form_adjoint`;
+               acrobot only): ild_closed_form, and apg_closed_form (brax's APG on the same
+               closed-form backward, like with like); each is also a row group of its own
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -239,13 +243,18 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
 
 
 ROWS = ("forward", "ild", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep", "ild_both",
-        "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "untransposed", "step",
-        "policy", "chamfer", "apg")
+        "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "closed_form",
+        "untransposed", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
-'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS)."""
+'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS, 'closed_form' the two
+CLOSED_FORM_ROWS)."""
 DOTS_ROWS = ("forward_dots", "ild_dots", "ild_substep_dots", "apg_dots")
 """The small-dots rows, each selectable alone (a GPU call that times ILD's rows and APG's in
 separate processes asks for ild_substep_dots in one and apg_dots in the other)."""
+CLOSED_FORM_ROWS = ("ild_closed_form", "apg_closed_form")
+"""The closed-form-adjoint rows (tasks with a closed-form step: acrobot), each selectable
+alone."""
+GROUPS = {"dots": DOTS_ROWS, "closed_form": CLOSED_FORM_ROWS}
 SUBSTEP_ROWS = ("ild_plain", "ild_substep", "ild_both", "ild_substep_chunk")
 """Row groups that differ from `ild` only where a task has brax's substep loop: left out
 elsewhere (pointmass), where they would time the same update again."""
@@ -253,17 +262,18 @@ elsewhere (pointmass), where they would time the same update again."""
 
 def check_rows(only) -> None:
     """ValueError naming any of `only` that is not a row group of ROWS."""
-    unknown = set(only) - set(ROWS) - set(DOTS_ROWS)
+    unknown = set(only) - set(ROWS) - set(DOTS_ROWS) - set(CLOSED_FORM_ROWS)
     if unknown:
         raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from "
-                         f"{ROWS + DOTS_ROWS}")
+                         f"{ROWS + DOTS_ROWS + CLOSED_FORM_ROWS}")
 
 
 def expand_rows(only) -> tuple[str, ...]:
-    """`only` with the group 'dots' replaced by its rows (DOTS_ROWS), order kept, no repeats."""
+    """`only` with the groups 'dots' and 'closed_form' replaced by their rows (DOTS_ROWS,
+    CLOSED_FORM_ROWS), order kept, no repeats."""
     out = []
     for r in only:
-        for x in (DOTS_ROWS if r == "dots" else (r,)):
+        for x in GROUPS.get(r, (r,)):
             if x not in out:
                 out.append(x)
     return tuple(out)
@@ -322,6 +332,14 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         except ValueError as e:  # small_dots on a task with no brax physics step
             print(f"dots: left out on {task_name}: {e}", flush=True)
             only = tuple(r for r in only if r not in DOTS_ROWS)
+    closed = dataclasses.replace(base, closed_form_adjoint=True)
+    closed_task = None
+    if set(CLOSED_FORM_ROWS) & set(only):
+        try:
+            closed_task = rollout_physics(task, closed)
+        except ValueError as e:  # no closed-form step
+            print(f"closed_form: left out on {task_name}: {e}", flush=True)
+            only = tuple(r for r in only if r not in CLOSED_FORM_ROWS)
     if "forward_dots" in only:
         fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
         row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,), repeats))
@@ -338,6 +356,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_dots", "ild_dots", dots, 1),
             ("ild_substep_dots", "ild_substep_dots",
              dataclasses.replace(substep, small_dots=True), 1),
+            ("ild_closed_form", "ild_closed_form", closed, 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -386,9 +405,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
         row("chamfer", _time(cham, (x,), repeats))
     apg_rows = [(name, physics) for name, physics in
-                (("apg", task), ("apg_dots", dots_task))
-                if with_apg and name in only]  # apg_dots: the same trainer on the same
-    # rewritten physics as ild_*_dots, so their ratio compares like with like
+                (("apg", task), ("apg_dots", dots_task), ("apg_closed_form", closed_task))
+                if with_apg and name in only]  # apg_dots / apg_closed_form: the same trainer
+    # on the same rewritten physics as ild_*_dots / ild_closed_form: like with like
     if apg_rows and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
@@ -419,10 +438,12 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("dots_forward_speedup", "forward", "forward_dots")
     ratio("dots_substep_speedup", "ild_substep", "ild_substep_dots")
     ratio("dots_substep_update_over_forward", "ild_substep_dots", "forward_dots")
+    ratio("closed_form_update_over_forward", "ild_closed_form", "forward")
+    ratio("closed_form_speedup", "ild", "ild_closed_form")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
         for name in ("ild", "ild_plain", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
                      f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
-                     "ild_untransposed", "ild_substep_untransposed"):
+                     "ild_untransposed", "ild_substep_untransposed", "ild_closed_form"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
                                               / by["apg"]["env_steps_per_s"])
@@ -431,6 +452,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             if name in by:
                 ratios[f"{name}_over_apg_dots"] = (by[name]["env_steps_per_s"]
                                                    / by["apg_dots"]["env_steps_per_s"])
+    if "apg_closed_form" in by and "ild_closed_form" in by:
+        ratios["ild_closed_form_over_apg_closed_form"] = (
+            by["ild_closed_form"]["env_steps_per_s"] / by["apg_closed_form"]["env_steps_per_s"])
     print({k: round(v, 3) for k, v in ratios.items()}, flush=True)
     for r in rows:
         r.update({k: round(v, 3) for k, v in ratios.items()})
@@ -447,7 +471,8 @@ def main(argv=None):
     p.add_argument("--no-apg", action="store_true")
     p.add_argument("--rows", default=",".join(ROWS),
                    help=f"comma-separated row groups to run (default all: {','.join(ROWS)}; "
-                        f"'dots' is {','.join(DOTS_ROWS)}, each also alone)")
+                        f"'dots' is {','.join(DOTS_ROWS)}, 'closed_form' is "
+                        f"{','.join(CLOSED_FORM_ROWS)}, each also alone)")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     p.add_argument("--time-lock", default=None, metavar="PATH",
                    help="hold an exclusive lock on PATH around each timed section: several "

@@ -107,6 +107,17 @@ class ILDConfig:
     of a step's cost) and about as fast on walker2d and ant, whose physics dominate (README
     ILD speed, session 31, `python -m methods.ild.paired`). False: the policy vmapped per
     env, flax's backward."""
+    closed_form_adjoint: bool = False
+    """Differentiate the training rollouts' physics through the task's closed-form step
+    (`tasks.core.with_closed_form_adjoint`; acrobot's double-pendulum equations) instead of
+    brax's reverse mode: brax's step still computes every value (the same rollout bit for
+    bit), and the gradient is the same to float32 round-off. Replaces `substep_remat` (the
+    backward no longer reads brax's substeps). On one core at B = 32 acrobot's update took
+    0.058 s instead of 0.117, 2.1x its forward rollout instead of 4.3x, 2.2x brax's APG
+    (1.14x APG through the same closed-form backward; `python -m methods.ild.benchmark
+    --task acrobot --rows forward,ild,closed_form,apg`, README ILD speed, session 38).
+    Tasks without a closed form refuse it. Off by default: recorded ILD cells ran through
+    brax's reverse mode."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -129,6 +140,9 @@ class ILDConfig:
             (self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}"),
             (bool(self.hidden) and all(h >= 1 for h in self.hidden),
              f"hidden must be positive layer sizes, got {self.hidden}"),
+            (not (self.closed_form_adjoint and self.small_dots),
+             "closed_form_adjoint and small_dots both rewrite the physics step; set one of "
+             "them False"),
         ]
         for name in ("learning_rate", "lr_end", "max_grad_norm", "obs_std_min",
                      "state_std_min"):

@@ -110,6 +110,28 @@ def multi_demo(loss_fn, x: jax.Array, ys: jax.Array, **kw) -> LossTerms:
 # of a whole window.
 
 
+_OBSERVERS: list = []
+"""Callbacks `observe_cotangent_norms` installs: each gets every cotangent norm the
+normalizer computes in functions traced while it is installed (diagnostics: the probe)."""
+
+
+class observe_cotangent_norms:
+    """Context manager: functions traced inside it report, through `callback(norm)` (a
+    jax.debug.callback, so at run time), the norm of every cotangent the per-step
+    normalizer sees (per env, per step: the action's and the next state's), before
+    clipping. Functions traced outside it are unchanged."""
+
+    def __init__(self, callback):
+        self.callback = callback
+
+    def __enter__(self):
+        _OBSERVERS.append(self.callback)
+        return self
+
+    def __exit__(self, *exc):
+        _OBSERVERS.remove(self.callback)
+
+
 @jax.custom_vjp
 def _norm_leaves(leaves):
     return leaves
@@ -122,6 +144,8 @@ def _norm_fwd(leaves):
 def _norm_bwd(_, cts):
     cts = [jnp.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0) for c in cts]
     norm = jnp.sqrt(sum(jnp.sum(c.astype(jnp.float32) ** 2) for c in cts))
+    for observe in _OBSERVERS:
+        jax.debug.callback(observe, norm)
     scale = jnp.where(norm > 1.0, 1.0 / jnp.maximum(norm, 1e-12), 1.0)
     return ([(c * scale).astype(c.dtype) for c in cts],)
 

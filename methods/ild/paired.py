@@ -13,8 +13,9 @@ A variant is comma-separated ILDConfig fields (a bare name sets a bool field Tru
 `chunk` is the updates per jitted call, as the trainer runs them. APG and every variant share
 one network (the paper's 512-256) and one batch (`--batch`), so a variant may not set
 `hidden` or `num_envs`. With `small_dots` APG trains on the same rewritten physics (like with
-like, as the benchmark's `apg_dots` row), so the variants of one call either all set it or
-none does.
+like, as the benchmark's `apg_dots` row), and with `closed_form_adjoint` through the same
+closed-form backward (`apg_closed_form`), so the variants of one call either all set such a
+field or none does.
 """
 from __future__ import annotations
 
@@ -31,7 +32,10 @@ from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
 from tasks import make_task
-from tasks.core import with_small_dots
+from tasks.core import with_closed_form_adjoint, with_small_dots
+
+REWRITES = {"small_dots": with_small_dots, "closed_form_adjoint": with_closed_form_adjoint}
+"""ILDConfig fields that rewrite the physics step, with the rewrite APG then trains on."""
 
 
 def parse_variant(text: str, batch: int) -> ILDConfig:
@@ -42,10 +46,11 @@ def parse_variant(text: str, batch: int) -> ILDConfig:
     return build_config(get_method("ild"), task="", overrides={"num_envs": batch, **fields})
 
 
-def apg_on_small_dots(configs: dict[str, ILDConfig], base: ILDConfig) -> bool:
-    """Whether APG trains on the small-dots physics (every variant sets small_dots) or on
-    the task's own (none does). ValueError, naming the variant and the fix, for a variant
-    whose network or batch is not APG's, or for variants that mix small_dots on and off."""
+def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig) -> str:
+    """The physics APG trains on: a REWRITES field that every variant sets ('small_dots',
+    'closed_form_adjoint') or 'brax' (the task's own, where none does). ValueError, naming
+    the variant and the fix, for a variant whose network or batch is not APG's, or for
+    variants that mix a rewrite on and off."""
     for v, cfg in configs.items():
         if cfg.hidden != base.hidden:
             raise ValueError(f"variant {v!r} sets hidden={cfg.hidden}: ILD and brax's APG are "
@@ -53,19 +58,22 @@ def apg_on_small_dots(configs: dict[str, ILDConfig], base: ILDConfig) -> bool:
         if cfg.num_envs != base.num_envs:
             raise ValueError(f"variant {v!r} sets num_envs={cfg.num_envs}: set the batch of "
                              f"ILD and APG with --batch (now {base.num_envs}) instead")
-    dots = {v: cfg.small_dots for v, cfg in configs.items()}
-    if len(set(dots.values())) > 1:
-        raise ValueError(f"variants {sorted(v for v, d in dots.items() if d)} set small_dots "
-                         f"and {sorted(v for v, d in dots.items() if not d)} do not: APG "
-                         "trains on one physics, so time them in separate calls")
-    return any(dots.values())
+    for field in REWRITES:
+        on = {v: getattr(cfg, field) for v, cfg in configs.items()}
+        if len(set(on.values())) > 1:
+            raise ValueError(f"variants {sorted(v for v, d in on.items() if d)} set {field} "
+                             f"and {sorted(v for v, d in on.items() if not d)} do not: APG "
+                             "trains on one physics, so time them in separate calls")
+        if any(on.values()):
+            return field
+    return "brax"
 
 
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         repeats: int = 8) -> list[dict]:
     base = ILDConfig(num_envs=batch)
     configs = {v: parse_variant(v, batch) for v in variants}
-    on_dots = apg_on_small_dots(configs, base)
+    physics = apg_physics(configs, base)
     task = make_task(task_name)
     if reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
@@ -90,7 +98,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             jax.block_until_ready(state)
             seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
-    apg_task = with_small_dots(task) if on_dots else task
+    apg_task = REWRITES[physics](task) if physics in REWRITES else task
     # apg_epochs leaves out APG's warm-up epochs (they compile); time_ild runs after those
     # too, and only its last `rounds` timings, made beside APG's steady epochs, are rounds.
     sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
@@ -103,7 +111,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
                          "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
                          "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
-                         "apg_physics": "small_dots" if on_dots else "brax",
+                         "apg_physics": physics,
                          **settings})
     for v in variants:
         ratios = [a / s for s, a in zip(ild[v], apg_s)]

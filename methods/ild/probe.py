@@ -15,7 +15,11 @@ policy parameters, and prints:
   is exactly the first move an ILD run makes at that learning rate;
 - the gradient ILD's update actually follows (the config's truncation and per-step
   normalization): its cosine with the true gradient, and the loss after Adam's first step
-  along it. A negative cosine means the update climbs the loss it is meant to descend.
+  along it. A negative cosine means the update climbs the loss it is meant to descend;
+- what the per-step normalization does to that gradient: the norms of the per-env, per-step
+  cotangents (the action's and the next state's) it sees, their largest and the fraction
+  above 1, the ones it rescales (session 38: none on acrobot, where `closed_form_adjoint`
+  hands it another representation of the same cotangent).
 
 `--no-joint-limits` runs the same probe on a copy of the task whose joint-range constraints
 are removed (brax `sys.dof.limit = None`): where the loss turns smooth without them, the
@@ -33,6 +37,7 @@ import numpy as np
 
 from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_pairs
 from methods.ild.config import TASK_OVERRIDES, ILDConfig
+from methods.ild.losses import observe_cotangent_norms
 from methods.ild.train import StateNorm, bc_warm_start, make_rollout_loss
 from tasks.core import without_joint_limits
 
@@ -48,7 +53,9 @@ def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
           positions_only: bool = False) -> dict:
     """Returns {'loss', 'grad_norm', 'params', 'other_keys', 'fd': {eps: value},
     'adam': {lr: loss after the first step}, 'cosine': cos(true gradient, the update's
-    gradient), 'adam_used': {lr: loss after the first step along the update's gradient}}."""
+    gradient), 'adam_used': {lr: loss after the first step along the update's gradient},
+    'cotangents': {'count', 'max', 'clipped'} of the norms the per-step normalizer saw in
+    the update's gradient (clipped: the fraction above 1, which it rescales to 1)}."""
     obs, actions = bc_pairs(task, demo)
     ds = jnp.asarray(demo.states[:, 1:])                                     # s_1..s_T
     norm = StateNorm.fit(ds, config.state_std_min)
@@ -84,7 +91,11 @@ def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
     sign = jax.tree.map(jnp.sign, g["net"])
     adam = {lr: float(loss(moved(sign, -lr), key)) for lr in lrs}
     used_fn = make_rollout_loss(task, policy, norm(ds), norm, config)  # what ILD follows
-    gu = jax.jit(jax.grad(lambda p: used_fn(p, key, init_keys)[0]))(params)["net"]
+    norms = []
+    with observe_cotangent_norms(norms.append):
+        gu = jax.jit(jax.grad(lambda p: used_fn(p, key, init_keys)[0]))(params)["net"]
+        jax.effects_barrier()
+    norms = np.concatenate([np.ravel(n) for n in norms]) if norms else np.zeros(0)
     dot = sum(jnp.sum(a * b) for a, b in zip(jax.tree_util.tree_leaves(g["net"]),
                                              jax.tree_util.tree_leaves(gu)))
     cosine = float(dot) / max(gn * _norm(gu), 1e-30)
@@ -92,7 +103,10 @@ def probe(task, demo, config: ILDConfig, seed: int = 0, eps=EPS, lrs=LRS,
     adam_used = {lr: float(loss(moved(sign_u, -lr), key)) for lr in lrs}
     others = [float(loss(params, jax.random.PRNGKey(seed + 100 + i))) for i in range(4)]
     return {"loss": float(l0), "grad_norm": gn, "params": n_params, "other_keys": others,
-            "fd": fd, "adam": adam, "cosine": cosine, "adam_used": adam_used}
+            "fd": fd, "adam": adam, "cosine": cosine, "adam_used": adam_used,
+            "cotangents": {"count": int(norms.size),
+                           "max": float(norms.max()) if norms.size else 0.0,
+                           "clipped": float((norms > 1.0).mean()) if norms.size else 0.0}}
 
 
 def main(argv=None):
@@ -138,6 +152,11 @@ def main(argv=None):
           f"{r['cosine']:.3f}; loss after Adam's first step along it:")
     for lr, v in r["adam_used"].items():
         print(f"  lr {lr:g}: {v:.4f} ({v / r['loss']:.2f}x)")
+    c = r["cotangents"]
+    if c["count"]:
+        print(f"per-step normalization: {c['count']} cotangents (action and next state, per env "
+              f"and step), largest norm {c['max']:.3g}, {100 * c['clipped']:.2f}% above 1 "
+              "(rescaled to 1)")
 
 
 if __name__ == "__main__":

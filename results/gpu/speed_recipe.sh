@@ -42,9 +42,15 @@
 # ILD_TASKS / APG_TASKS (default TASKS) pick the tasks of each phase. TOGETHER=1 starts
 # the APG processes with the ILD ones (one phase; the lock still keeps every timed section
 # alone on the GPU, but a timed section waits for every APG warm-up).
+#
+# Session 38 (CLOSED_FORM_TASKS, untried on a GPU): each task in it (acrobot, the one with a
+# closed-form step) adds ild_closed_form to its ILD process and a second APG process with
+# --rows apg_closed_form (brax's APG through the same closed-form backward), e.g.
+#   T=270 TASKS=acrobot ILD_ROWS=forward,ild CLOSED_FORM_TASKS=acrobot bash ...
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
+CLOSED_FORM_TASKS=${CLOSED_FORM_TASKS:-}
 ILD_TASKS=${ILD_TASKS:-$TASKS} APG_TASKS=${APG_TASKS:-$TASKS} APG_GROUP=${APG_GROUP:-2}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || exit 1
@@ -67,13 +73,18 @@ for phase in ild apg; do
   tasks=$ILD_TASKS; [ $phase = apg ] && tasks=$APG_TASKS
   for t in $tasks; do
     dots=no; [[ " $DOTS_TASKS " == *" $t "* ]] && dots=yes
+    cf=no; [[ " $CLOSED_FORM_TASKS " == *" $t "* ]] && cf=yes
     if [ $phase = ild ]; then
       rows=$ILD_ROWS; [ $dots = yes ] && rows=$rows,forward_dots,ild_substep_dots
+      [ $cf = yes ] && rows=$rows,ild_closed_form
       bm ild_$t --task $t --rows $rows --no-apg & pids+=($!)
     else
       bm apg_$t --task $t --rows apg & pids+=($!) group+=($!)
       [ $dots = yes ] && { bm apg_dots_$t --task $t --rows apg_dots & pids+=($!) group+=($!); }
-      # APG_GROUP APG processes at a time (a DOTS_TASKS pair may make it one more): each
+      [ $cf = yes ] && { bm apg_cf_$t --task $t --rows apg_closed_form & pids+=($!)
+                         group+=($!); }
+      # APG_GROUP APG processes at a time (a DOTS_TASKS or CLOSED_FORM_TASKS pair or triple
+      # may make it one or two more): each
       # timed epoch waits for every warm-up running beside it
       [ ${#group[@]} -ge $APG_GROUP ] && { wait "${group[@]}"; group=(); }
     fi
