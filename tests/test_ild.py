@@ -4,6 +4,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from bench.budget import Budget
@@ -148,6 +149,38 @@ def test_rollout_gradient_finite_at_the_extremes(kw):
                                                                    keys)
     flat = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(g)])
     assert np.isfinite(v) and np.isfinite(flat).all() and np.abs(flat).sum() > 0
+
+
+def test_grad_norm_scope_batch_is_one_norm_over_all_envs():
+    """grad_norm_scope: 'env' (default) normalizes each env's per-step cotangents on their
+    own, 'batch' (the original's) all B envs' at once. Where no norm reaches 1 (the loss
+    scaled by 0.1; unscaled, one of pointmass's batch norms is 1.37 while its envs' stay
+    under 0.72) they are the same gradient, and each batch norm squared is the sum of the
+    envs' squared norms at that step (one norm per step and kind instead of B); with the
+    loss scaled by 1e4 they clip,
+    the batch's one norm caps all envs' cotangent together, and its gradient is the smaller."""
+    from methods.ild.losses import observe_cotangent_norms
+    T, B = make_task("pointmass").episode_length, 4
+    out = {}
+    for scope in ("env", "batch"):
+        loss, params, keys = _setup(_cfg(grad_norm_scope=scope))
+        for scale in (0.1, 1e4):
+            seen = []
+            with observe_cotangent_norms(seen.append):
+                g = jax.jit(jax.grad(lambda p: scale * loss(p, jax.random.PRNGKey(2),
+                                                            keys)[0]))(params)
+                jax.effects_barrier()
+            out[scope, scale] = (g, np.concatenate([np.ravel(n) for n in seen]))
+    (ge, ne), (gb, nb) = out["env", 0.1], out["batch", 0.1]
+    assert (ne.size, nb.size) == (2 * T * B, 2 * T) and 0 < ne.max() <= nb.max() < 1
+    np.testing.assert_allclose(np.sum(nb ** 2), np.sum(ne ** 2), rtol=1e-4)
+    for a, b in zip(jax.tree.leaves(ge), jax.tree.leaves(gb)):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-9)
+    (ge, ne), (gb, nb) = out["env", 1e4], out["batch", 1e4]
+    assert (ne > 1).mean() >= 0.25 and (nb > 1).mean() >= 0.25
+    assert float(optax.global_norm(gb)) < 0.9 * float(optax.global_norm(ge))
+    with pytest.raises(ValueError, match="grad_norm_scope must be one of"):
+        _cfg(grad_norm_scope="step")
 
 
 def test_observation_normalizer_is_frozen_in_ild_and_bc():

@@ -7,6 +7,7 @@ import dataclasses
 LOSSES = ("chamfer", "l2")
 DISTANCES = ("rms", "sq")
 SCHEDULES = ("linear", "constant", "budget")
+NORM_SCOPES = ("env", "batch")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +53,14 @@ class ILDConfig:
     tests/test_ild.py::test_tanh_loss_saturates_to_a_zero_gradient)."""
     grad_normalization: bool = True
     """Per-step gradient normalization through the dynamics (the original's stabilizer)."""
+    grad_norm_scope: str = "env"
+    """What one norm of the per-step normalization spans: 'env' (default) each env's action
+    and next-state cotangent on its own, so one env's exploding contact cannot shrink the
+    others' gradients; 'batch' all B envs' at once, as the original's `norm_grad` on brax
+    v1's batched state did (shared/reference), a norm up to sqrt(B) times an env's. The same
+    gradient wherever nothing reaches norm 1, which is what `python -m methods.ild.probe`
+    finds from the BC warm start on acrobot and hopper at B = 32 (largest norm per env 0.047
+    and 0.111, over the batch 0.204 and 0.198; README ILD section, session 38)."""
     bc_updates: int = 1000
     """BC warm-start updates (Alg. 1 line 3; the original ran 1000); 0 disables it."""
     bc_samples: int = 16
@@ -134,6 +143,8 @@ class ILDConfig:
             (self.loss in LOSSES, f"loss must be one of {LOSSES}, got {self.loss!r}"),
             (self.distance in DISTANCES,
              f"distance must be one of {DISTANCES}, got {self.distance!r}"),
+            (self.grad_norm_scope in NORM_SCOPES,
+             f"grad_norm_scope must be one of {NORM_SCOPES}, got {self.grad_norm_scope!r}"),
             (self.lr_schedule in SCHEDULES,
              f"lr_schedule must be one of {SCHEDULES}, got {self.lr_schedule!r}"),
             (self.alpha >= 0, f"alpha must be >= 0, got {self.alpha}"),

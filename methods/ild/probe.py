@@ -124,6 +124,9 @@ def main(argv=None):
                     help="the update's truncation window (default: ILD's for the task)")
     ap.add_argument("--no-joint-limits", action="store_true",
                     help="probe a copy of the task without its joint-range constraints")
+    ap.add_argument("--grad-norm-scope", choices=("env", "batch"), default=None,
+                    help="the per-step normalization's scope (default: ILD's, 'env'; "
+                         "'batch' is the original's one norm over all envs)")
     args = ap.parse_args(argv)
     enable_compilation_cache()
     task = make_task(args.task)
@@ -134,6 +137,8 @@ def main(argv=None):
                                  **TASK_OVERRIDES.get(args.task, {}))
     if args.truncation is not None:
         config = dataclasses.replace(config, truncation=args.truncation)
+    if args.grad_norm_scope is not None:
+        config = dataclasses.replace(config, grad_norm_scope=args.grad_norm_scope)
     r = probe(task, demo, config, args.seed, positions_only=args.positions_only)
     print(f"{args.task}{' (positions only)' if args.positions_only else ''}"
           f"{' (no joint limits)' if args.no_joint_limits else ''}: B = "
@@ -154,8 +159,9 @@ def main(argv=None):
         print(f"  lr {lr:g}: {v:.4f} ({v / r['loss']:.2f}x)")
     c = r["cotangents"]
     if c["count"]:
-        print(f"per-step normalization: {c['count']} cotangents (action and next state, per env "
-              f"and step), largest norm {c['max']:.3g}, {100 * c['clipped']:.2f}% above 1 "
+        per = "per env and step" if config.grad_norm_scope == "env" else "all envs, per step"
+        print(f"per-step normalization: {c['count']} cotangents (action and next state, {per}"
+              f"), largest norm {c['max']:.3g}, {100 * c['clipped']:.2f}% above 1 "
               "(rescaled to 1)")
 
 

@@ -59,6 +59,10 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     goals: (K, T, D) normalized demo states s_1..s_T."""
     env, T, B = task.env, task.episode_length, config.num_envs
     gn = normalize_grad if config.grad_normalization else (lambda x: x)
+    # The normalization's scope: per env inside the vmaps below ('env'), or over the whole
+    # batch after them ('batch', the original's), where the per-env one is the identity.
+    batch_gn, gn = (gn, lambda x: x) if config.grad_norm_scope == "batch" else (
+        lambda x: x, gn)
 
     def physics_step(s, a):
         return gn(env.step(s, a))
@@ -76,11 +80,14 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         def body(s, xs):
             t, k = xs
             keys = jax.random.split(k, B)
-            if kernels_t is None:
+            if kernels_t is None and config.grad_norm_scope == "env":
                 s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, keys)
             else:  # the same values as env_step's: the same per-env keys
-                a = jax.vmap(gn)(policy.sample_batch(params, s.obs, keys, kernels_t))
-                s2 = jax.vmap(physics_step)(s, a)
+                a = (jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, s.obs, keys)
+                     if kernels_t is None else
+                     policy.sample_batch(params, s.obs, keys, kernels_t))
+                a = batch_gn(jax.vmap(gn)(a))
+                s2 = batch_gn(jax.vmap(physics_step)(s, a))
             m = jax.vmap(task.matched_state)(s2)
             cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
