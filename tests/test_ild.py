@@ -800,6 +800,12 @@ def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
                                   grad_normalization=False), eps=(1e-3,), lrs=(1e-7,))
     assert full["cosine"] == pytest.approx(1.0, abs=1e-5)  # the update's gradient is the true one
     assert full["adam_used"][1e-7] == pytest.approx(full["adam"][1e-7], rel=1e-6)
+    # what the per-step normalizer saw: the action's and the next state's cotangent per env
+    # and step (B = 4); none without the normalizer
+    c = r["cotangents"]
+    assert c["count"] == 2 * task.episode_length * 4 and c["max"] > 0
+    assert 0.0 <= c["clipped"] <= 1.0 and (c["clipped"] > 0) == (c["max"] > 1)
+    assert full["cotangents"] == {"count": 0, "max": 0.0, "clipped": 0.0}
     assert r["params"] == sum(x.size for x in jax.tree_util.tree_leaves(
         TanhGaussianPolicy(task.obs_size, task.action_size, (32, 32)).init(
             jax.random.PRNGKey(0), ObsNorm.fit(jnp.zeros((2, task.obs_size))))["net"]))
