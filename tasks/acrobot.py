@@ -19,8 +19,8 @@ from __future__ import annotations
 import os
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import PipelineEnv, State
 from brax.io import mjcf
 

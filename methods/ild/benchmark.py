@@ -279,6 +279,20 @@ def expand_rows(only) -> tuple[str, ...]:
     return tuple(out)
 
 
+def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...]):
+    """(`rollout_physics(task, config)`, `only`) where `only` asks for a row of `group`
+    (GROUPS); (None, `only` without the group's rows), saying so, where the task refuses the
+    rewrite (small_dots without a brax physics step, closed_form_adjoint without a closed
+    form) or no row of the group is asked for."""
+    rows = GROUPS[group]
+    if set(rows) & set(only):
+        try:
+            return rollout_physics(task, config), only
+        except ValueError as e:
+            print(f"{group}: left out on {task.name}: {e}", flush=True)
+    return None, tuple(r for r in only if r not in rows)
+
+
 def speed_setup(task, config: ILDConfig):
     """What a speed measurement of ILD's update needs, seeded: (policy, goals, norm, params,
     keys). Goals are random states of the task's matched-state size with an identity
@@ -325,21 +339,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     remat = dataclasses.replace(plain, remat=True)
     substep = dataclasses.replace(plain, substep_remat=True)
     dots = dataclasses.replace(plain, small_dots=True)
-    dots_task = None
-    if set(DOTS_ROWS) & set(only):
-        try:
-            dots_task = rollout_physics(task, dots)
-        except ValueError as e:  # small_dots on a task with no brax physics step
-            print(f"dots: left out on {task_name}: {e}", flush=True)
-            only = tuple(r for r in only if r not in DOTS_ROWS)
     closed = dataclasses.replace(base, closed_form_adjoint=True)
-    closed_task = None
-    if set(CLOSED_FORM_ROWS) & set(only):
-        try:
-            closed_task = rollout_physics(task, closed)
-        except ValueError as e:  # no closed-form step
-            print(f"closed_form: left out on {task_name}: {e}", flush=True)
-            only = tuple(r for r in only if r not in CLOSED_FORM_ROWS)
+    dots_task, only = _rewritten_physics(task, dots, "dots", only)
+    closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     if "forward_dots" in only:
         fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
         row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,), repeats))

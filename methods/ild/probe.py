@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from methods.common.policy import ObsNorm, TanhGaussianPolicy, bc_pairs
-from methods.ild.config import TASK_OVERRIDES, ILDConfig
+from methods.ild.config import NORM_SCOPES, TASK_OVERRIDES, ILDConfig
 from methods.ild.losses import observe_cotangent_norms
 from methods.ild.train import StateNorm, bc_warm_start, make_rollout_loss
 from tasks.core import without_joint_limits
@@ -124,7 +124,7 @@ def main(argv=None):
                     help="the update's truncation window (default: ILD's for the task)")
     ap.add_argument("--no-joint-limits", action="store_true",
                     help="probe a copy of the task without its joint-range constraints")
-    ap.add_argument("--grad-norm-scope", choices=("env", "batch"), default=None,
+    ap.add_argument("--grad-norm-scope", choices=NORM_SCOPES, default=None,
                     help="the per-step normalization's scope (default: ILD's, 'env'; "
                          "'batch' is the original's one norm over all envs)")
     args = ap.parse_args(argv)

@@ -67,10 +67,6 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     def physics_step(s, a):
         return gn(env.step(s, a))
 
-    def env_step(params, s, key):
-        a = gn(policy.sample(params, s.obs, key))
-        return physics_step(s, a), a
-
     def loss_fn(params, key, init_keys):
         k_act = key
         s0 = jax.vmap(env.reset)(init_keys)
@@ -80,14 +76,12 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         def body(s, xs):
             t, k = xs
             keys = jax.random.split(k, B)
-            if kernels_t is None and config.grad_norm_scope == "env":
-                s2, a = jax.vmap(env_step, in_axes=(None, 0, 0))(params, s, keys)
-            else:  # the same values as env_step's: the same per-env keys
-                a = (jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, s.obs, keys)
-                     if kernels_t is None else
-                     policy.sample_batch(params, s.obs, keys, kernels_t))
-                a = batch_gn(jax.vmap(gn)(a))
-                s2 = batch_gn(jax.vmap(physics_step)(s, a))
+            # sample_batch: the same values as vmap(sample), from the same per-env keys
+            a = (jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, s.obs, keys)
+                 if kernels_t is None else
+                 policy.sample_batch(params, s.obs, keys, kernels_t))
+            a = batch_gn(jax.vmap(gn)(a))
+            s2 = batch_gn(jax.vmap(physics_step)(s, a))
             m = jax.vmap(task.matched_state)(s2)
             cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
             s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
