@@ -679,6 +679,41 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
             assert cfg.substep_remat and not cfg.remat
 
 
+def test_acrobot_trains_through_its_closed_form_and_swimmer_with_small_dots_by_default(
+        monkeypatch):
+    """Session 39's speed overrides (config.py): acrobot's resolved config, in either preset,
+    differentiates through its closed-form step (and keeps full BPTT), swimmer's computes its
+    step's small products as sums on top of substep remat; no other brax task takes either,
+    a user's --set still turns them off, and asking for both rewrites on acrobot is a
+    ConfigError naming the two fields. rollout_physics builds exactly those physics."""
+    import importlib
+
+    from bench.plugins import ConfigError, build_config, get_method
+    train = importlib.import_module("methods.ild.train")  # the module, not the package's train
+    ild = get_method("ild")
+    for preset in ("cpu", "paper"):
+        acro, swim = build_config(ild, "acrobot", preset), build_config(ild, "swimmer", preset)
+        assert acro.closed_form_adjoint and not acro.small_dots and acro.truncation == 128
+        assert swim.small_dots and swim.substep_remat and not swim.closed_form_adjoint
+        for name in ("ant", "hopper", "humanoid", "reacher", "walker2d", "inverted_pendulum",
+                     "pointmass", "cloth"):
+            cfg = build_config(ild, name, preset)
+            assert not cfg.closed_form_adjoint and not cfg.small_dots, name
+    assert not build_config(ild, "acrobot", "cpu", {"closed_form_adjoint": "false"}
+                            ).closed_form_adjoint
+    assert not build_config(ild, "swimmer", "cpu", {"small_dots": "false"}).small_dots
+    with pytest.raises(ConfigError, match="closed_form_adjoint and small_dots"):
+        build_config(ild, "acrobot", "cpu", {"small_dots": "true"})
+    calls = []
+    for name in ("with_closed_form_adjoint", "with_small_dots", "with_substep_remat"):
+        monkeypatch.setattr(train, name, lambda t, name=name: calls.append(name) or t)
+    train.rollout_physics(make_task("acrobot"), build_config(ild, "acrobot", "cpu"))
+    assert calls == ["with_closed_form_adjoint"]
+    calls.clear()
+    train.rollout_physics(make_task("swimmer"), build_config(ild, "swimmer", "cpu"))
+    assert calls == ["with_substep_remat", "with_small_dots"]
+
+
 @pytest.mark.slow
 def test_full_bptt_is_closer_to_the_true_gradient_on_inverted_pendulum():
     """Why inverted_pendulum overrides truncation (methods/ild/config.py): from the BC warm
@@ -880,6 +915,29 @@ def test_speed_benchmark_runs_the_rows_asked_for():
     assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax pipeline
     with pytest.raises(ValueError, match="unknown benchmark rows.*'nope'"):
         run("pointmass", batch=4, repeats=1, with_apg=False, only=("forward", "nope"))
+
+
+def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
+    """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
+    the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
+    hopper's the `ild` row's own config, whose timing it then reports again rather than
+    compiling the same update twice."""
+    from methods.ild import benchmark
+    acro = benchmark.task_config("acrobot", 8)
+    assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
+    assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
+    assert benchmark.task_config("hopper", 8) == ILDConfig(num_envs=8)
+    compiled = []
+    real = benchmark.make_update
+    monkeypatch.setattr(benchmark, "make_update",
+                        lambda *a, **k: compiled.append(a[4]) or real(*a, **k))
+    rows = benchmark.run("pointmass", batch=2, repeats=1, with_apg=False,
+                         only=("forward", "ild", "ild_task"))
+    assert [r["what"] for r in rows] == ["forward", "ild", "ild_task"]
+    assert compiled == [ILDConfig(num_envs=2)]
+    assert rows[1]["seconds"] == rows[2]["seconds"]
+    assert rows[2]["task_update_over_forward"] == round(rows[1]["seconds"]
+                                                        / rows[0]["seconds"], 3)
 
 
 def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):

@@ -5,9 +5,14 @@ horizon (128) and policy network (512-256 swish, tanh-Gaussian):
 
 rows:
   forward      the batched 128-step rollout + Chamfer loss, value only
-  ild          one full ILD update as ILD trains by default (rollout, Chamfer, backward
+  ild          one full ILD update with ILDConfig's defaults (rollout, Chamfer, backward
                through the physics with per-step gradient normalization and truncation 10,
-               clip, Adam; since version 5 each brax physics substep rematerialized)
+               clip, Adam; since version 5 each brax physics substep rematerialized): what a
+               task without TASK_OVERRIDES trains with
+  ild_task     one ILD update as ILD trains this task: the `ild` config with the task's
+               TASK_OVERRIDES (methods/ild/config.py) applied, so acrobot's through its closed
+               form with full BPTT, swimmer's with small dots, inverted_pendulum's with full
+               BPTT (since session 39); where a task has none, `ild`'s timing again
   ild_plain    the same without substep remat (`--set substep_remat=false`: ILD's default
                before version 5); the remat, dots and untransposed rows below start from it
   ild_no_gn    the default update without per-step gradient normalization
@@ -242,8 +247,8 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
     return float(jnp.linalg.norm(g))
 
 
-ROWS = ("forward", "ild", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep", "ild_both",
-        "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "closed_form",
+ROWS = ("forward", "ild", "ild_task", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep",
+        "ild_both", "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "closed_form",
         "untransposed", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS, 'closed_form' the two
@@ -291,6 +296,13 @@ def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...
         except ValueError as e:
             print(f"{group}: left out on {task.name}: {e}", flush=True)
     return None, tuple(r for r in only if r not in rows)
+
+
+def task_config(task_name: str, batch: int) -> ILDConfig:
+    """ILD's config as it trains `task_name` (the class defaults with the task's
+    TASK_OVERRIDES), at `batch` envs: the `ild_task` row's."""
+    from bench.plugins import build_config, get_method
+    return build_config(get_method("ild"), task_name, None, {"num_envs": batch})
 
 
 def speed_setup(task, config: ILDConfig):
@@ -348,7 +360,8 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
-            ("ild", "ild", base, 1), ("ild_plain", "ild_plain", plain, 1),
+            ("ild", "ild", base, 1), ("ild_task", "ild_task", task_config(task_name, batch), 1),
+            ("ild_plain", "ild_plain", plain, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
             ("ild_both", "ild_both", dataclasses.replace(substep, remat=True), 1),
@@ -425,6 +438,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         if num in by and den in by:
             ratios[name] = by[num][field] / by[den][field]
     ratio("update_over_forward", "ild", "forward")
+    ratio("task_update_over_forward", "ild_task", "forward")
     ratio("substep_update_over_forward", "ild_substep", "forward")
     ratio("chamfer_share_of_update", "chamfer", "ild")
     ratio("chamfer_share_of_update_memory", "chamfer", "ild", "temp_mib")
@@ -443,8 +457,8 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("closed_form_update_over_forward", "ild_closed_form", "forward")
     ratio("closed_form_speedup", "ild", "ild_closed_form")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
-        for name in ("ild", "ild_plain", "ild_remat", "ild_substep", "ild_both", f"ild_chunk{chunk}",
-                     f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
+        for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
+                     f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
                      "ild_untransposed", "ild_substep_untransposed", "ild_closed_form"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
@@ -457,6 +471,15 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     if "apg_closed_form" in by and "ild_closed_form" in by:
         ratios["ild_closed_form_over_apg_closed_form"] = (
             by["ild_closed_form"]["env_steps_per_s"] / by["apg_closed_form"]["env_steps_per_s"])
+    if "ild_task" in by:  # like with like where the task trains on rewritten physics
+        cfg = task_config(task_name, batch)
+        if cfg.small_dots:  # its forward rollout is forward_dots (the closed form's is brax's)
+            ratio("task_update_over_forward_dots", "ild_task", "forward_dots")
+        like = ("apg_closed_form" if cfg.closed_form_adjoint else
+                "apg_dots" if cfg.small_dots else None)
+        if like in by:
+            ratios[f"ild_task_over_{like}"] = (by["ild_task"]["env_steps_per_s"]
+                                               / by[like]["env_steps_per_s"])
     print({k: round(v, 3) for k, v in ratios.items()}, flush=True)
     for r in rows:
         r.update({k: round(v, 3) for k, v in ratios.items()})

@@ -105,7 +105,7 @@ class ILDConfig:
     swimmer's update with `substep_remat` took 0.651 s instead of 1.769 on one core at B = 32,
     while the spring tasks' and acrobot's updates gained nothing (0.91-1.04x; `python -m
     methods.ild.benchmark --rows forward,ild_substep,dots`, README ILD speed, session 29).
-    Off by default: every recorded ILD cell ran without it."""
+    Off in the class; swimmer's TASK_OVERRIDES turn it on (session 39, its cells re-run)."""
     transposed_backward: bool = True
     """The rollout's policy runs as one batched `TanhGaussianPolicy.sample_batch` per step,
     whose backward reads the kernels transposed once per update instead of transposing each
@@ -125,8 +125,8 @@ class ILDConfig:
     0.058 s instead of 0.117, 2.1x its forward rollout instead of 4.3x, 2.2x brax's APG
     (1.14x APG through the same closed-form backward; `python -m methods.ild.benchmark
     --task acrobot --rows forward,ild,closed_form,apg`, README ILD speed, session 38).
-    Tasks without a closed form refuse it. Off by default: recorded ILD cells ran through
-    brax's reverse mode."""
+    Tasks without a closed form refuse it. Off in the class; acrobot's TASK_OVERRIDES turn
+    it on (session 39: session 38's cells with it are the 10-minute grid's acrobot cells)."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -195,11 +195,25 @@ TASK_OVERRIDES: dict[str, dict] = {
     # the true one is -0.389 and Adam's first step along it raises the loss (lr 1e-3: 2.00x),
     # at 128 the cosine is 1.000 (`python -m methods.ild.probe --task acrobot --num-envs 32
     # --truncation W`, session 11): a swing-up's early torques pay off many steps later.
-    "acrobot": {"truncation": 128},
-    # swimmer (session 13) has no override: truncation-10's cosine with the true gradient is
-    # 0.505 (0.802 at 128), but from the BC warm start every Adam first step at lr >= 1e-4
-    # raises the loss (1.8-4x) along either gradient, and central differences disagree with
-    # the analytic derivative at every eps: a rough loss, not a truncation effect (README).
+    #
+    # acrobot also differentiates its physics through its closed-form step (session 39): the
+    # same rollout bit for bit and the same gradient to float32 round-off as brax's reverse
+    # mode, in half the time (one core, B = 32: 0.058 s per update instead of 0.117, 2.1x
+    # its forward rollout, 2.2x brax's APG; README ILD speed, session 38). The session-38
+    # cells with it scored as the reverse-mode cells seed by seed (0.850 / 0.893 / 0.838)
+    # with 5,000 updates in 299-305 s instead of 554-574; they are the grid's acrobot cells.
+    "acrobot": {"truncation": 128, "closed_form_adjoint": True},
+    # swimmer (session 13) has no truncation override: truncation-10's cosine with the true
+    # gradient is 0.505 (0.802 at 128), but from the BC warm start every Adam first step at
+    # lr >= 1e-4 raises the loss (1.8-4x) along either gradient, and central differences
+    # disagree with the analytic derivative at every eps: a rough loss, not a truncation
+    # effect (README).
+    # Its override is speed: swimmer's step is many tiny batched products (3 links, fluid,
+    # joint limits), which `small_dots` computes as multiply-and-sum: the same function and
+    # gradient to float32 round-off, an update of 0.464 s instead of 1.314 on one core at
+    # B = 32, 1.29x APG on the same rewritten physics where the default was 0.84x brax's
+    # (`python -m methods.ild.paired`, session 37). Session 39 re-ran its cells with it.
+    "swimmer": {"small_dots": True},
     # The original's cloth setting: 10 parallel rollouts (one update of 10 x 80 steps costs
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.

@@ -47,6 +47,10 @@
 # closed-form step) adds ild_closed_form to its ILD process and a second APG process with
 # --rows apg_closed_form (brax's APG through the same closed-form backward), e.g.
 #   T=270 TASKS=acrobot ILD_ROWS=forward,ild CLOSED_FORM_TASKS=acrobot bash ...
+# Since session 39 acrobot trains through its closed form and swimmer with small dots by
+# task override; the benchmark's ild_task row times each task's update as it trains
+# (ILD_ROWS=forward,ild,ild_task), to set beside `apg` (brax as shipped) and, for the
+# like-with-like ratio, apg_closed_form / apg_dots (CLOSED_FORM_TASKS / DOTS_TASKS).
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
