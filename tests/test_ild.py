@@ -1052,3 +1052,15 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
                                ("closed_form_adjoint", "closed_form_adjoint,chunk=2")},
                               base) == "closed_form_adjoint"
     assert paired.apg_physics({"chunk=2": paired.parse_variant("chunk=2", 4)}, base) == "brax"
+    # 'task' starts from the task's TASK_OVERRIDES; --apg-physics brax allows any mix and
+    # times brax's APG as shipped
+    assert paired.parse_variant("task", 4, "acrobot") == paired.ILDConfig(
+        num_envs=4, truncation=128, closed_form_adjoint=True)
+    assert paired.parse_variant("task,chunk=2", 4, "swimmer") == paired.ILDConfig(
+        num_envs=4, small_dots=True, chunk=2)
+    assert paired.parse_variant("chunk=2", 4, "acrobot") == paired.ILDConfig(num_envs=4, chunk=2)
+    mixed = {v: paired.parse_variant(v, 4, "acrobot") for v in ("task", "chunk=2")}
+    with pytest.raises(ValueError, match="--apg-physics brax"):
+        paired.apg_physics(mixed, base)
+    assert paired.apg_physics(mixed, base, brax=True) == "brax"
+    assert paired.apg_physics({"task": mixed["task"]}, base) == "closed_form_adjoint"

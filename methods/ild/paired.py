@@ -15,7 +15,14 @@ one network (the paper's 512-256) and one batch (`--batch`), so a variant may no
 `hidden` or `num_envs`. With `small_dots` APG trains on the same rewritten physics (like with
 like, as the benchmark's `apg_dots` row), and with `closed_form_adjoint` through the same
 closed-form backward (`apg_closed_form`), so the variants of one call either all set such a
-field or none does.
+field or none does. `--apg-physics brax` times brax's APG as shipped instead, whatever the
+variants set (the issue's comparison: ILD's update, rewrites and all, against brax's own
+trainer). A variant that starts with `task` is ILD's config as the task trains it (its
+TASK_OVERRIDES: acrobot's closed form and full BPTT, swimmer's small dots, since session 39),
+and the fields after it on top:
+
+    python -m methods.ild.paired --task swimmer --variant task --variant task,chunk=4 \\
+        --apg-physics brax
 """
 from __future__ import annotations
 
@@ -38,19 +45,23 @@ REWRITES = {"small_dots": with_small_dots, "closed_form_adjoint": with_closed_fo
 """ILDConfig fields that rewrite the physics step, with the rewrite APG then trains on."""
 
 
-def parse_variant(text: str, batch: int) -> ILDConfig:
+def parse_variant(text: str, batch: int, task_name: str = "") -> ILDConfig:
     """'substep_remat,chunk=4' -> ILDConfig(num_envs=batch, substep_remat=True, chunk=4)
-    (the paper's defaults otherwise, as the benchmark's rows; no per-task overrides)."""
-    fields = dict(p.partition("=")[::2] if "=" in p else (p, "true")
-                  for p in text.split(",") if p)
-    return build_config(get_method("ild"), task="", overrides={"num_envs": batch, **fields})
+    (the paper's defaults otherwise, as the benchmark's rows; no per-task overrides);
+    'task,chunk=4' -> the config `task_name` trains with (its TASK_OVERRIDES) with chunk=4."""
+    parts = [p for p in text.split(",") if p]
+    of_task = bool(parts) and parts[0] == "task"
+    fields = dict(p.partition("=")[::2] if "=" in p else (p, "true") for p in parts[of_task:])
+    return build_config(get_method("ild"), task=task_name if of_task else "",
+                        overrides={"num_envs": batch, **fields})
 
 
-def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig) -> str:
+def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig, brax: bool = False) -> str:
     """The physics APG trains on: a REWRITES field that every variant sets ('small_dots',
-    'closed_form_adjoint') or 'brax' (the task's own, where none does). ValueError, naming
-    the variant and the fix, for a variant whose network or batch is not APG's, or for
-    variants that mix a rewrite on and off."""
+    'closed_form_adjoint') or 'brax' (the task's own, where none does, or always with
+    `brax`: APG as shipped). ValueError, naming the variant and the fix, for a variant whose
+    network or batch is not APG's, or (without `brax`) for variants that mix a rewrite on
+    and off."""
     for v, cfg in configs.items():
         if cfg.hidden != base.hidden:
             raise ValueError(f"variant {v!r} sets hidden={cfg.hidden}: ILD and brax's APG are "
@@ -58,22 +69,25 @@ def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig) -> str:
         if cfg.num_envs != base.num_envs:
             raise ValueError(f"variant {v!r} sets num_envs={cfg.num_envs}: set the batch of "
                              f"ILD and APG with --batch (now {base.num_envs}) instead")
+    if brax:
+        return "brax"
     for field in REWRITES:
         on = {v: getattr(cfg, field) for v, cfg in configs.items()}
         if len(set(on.values())) > 1:
             raise ValueError(f"variants {sorted(v for v, d in on.items() if d)} set {field} "
                              f"and {sorted(v for v, d in on.items() if not d)} do not: APG "
-                             "trains on one physics, so time them in separate calls")
+                             "trains on one physics, so time them in separate calls (or "
+                             "all against brax's APG as shipped: --apg-physics brax)")
         if any(on.values()):
             return field
     return "brax"
 
 
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
-        repeats: int = 8) -> list[dict]:
+        repeats: int = 8, apg_as_shipped: bool = False) -> list[dict]:
     base = ILDConfig(num_envs=batch)
-    configs = {v: parse_variant(v, batch) for v in variants}
-    physics = apg_physics(configs, base)
+    configs = {v: parse_variant(v, batch, task_name) for v in variants}
+    physics = apg_physics(configs, base, brax=apg_as_shipped)
     task = make_task(task_name)
     if reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
@@ -128,14 +142,20 @@ def main(argv=None):
     p.add_argument("--rounds", type=int, default=6)
     p.add_argument("--repeats", type=int, default=8, help="updates per APG epoch and per "
                    "ILD block")
-    p.add_argument("--variant", action="append", required=True)
+    p.add_argument("--variant", action="append", required=True,
+                   help="comma-separated ILDConfig fields; a leading 'task' starts from the "
+                        "task's own config (its TASK_OVERRIDES)")
+    p.add_argument("--apg-physics", choices=("auto", "brax"), default="auto",
+                   help="auto: APG on the physics the variants rewrite (like with like); "
+                        "brax: brax's APG as shipped, whatever the variants set")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
     if min(a.batch, a.rounds, a.repeats) < 1:
         p.error(f"--batch, --rounds and --repeats must be >= 1, got {a.batch}, {a.rounds}, "
                 f"{a.repeats}")
     try:
-        rows = run(a.task, a.variant, a.batch, a.rounds, a.repeats)
+        rows = run(a.task, a.variant, a.batch, a.rounds, a.repeats,
+                   apg_as_shipped=a.apg_physics == "brax")
     except (ValueError, ConfigError) as e:
         p.error(str(e))
     if a.out:
