@@ -298,11 +298,13 @@ def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...
     return None, tuple(r for r in only if r not in rows)
 
 
-def task_config(task_name: str, batch: int) -> ILDConfig:
+def task_config(task_name: str, batch: int, overrides=None) -> ILDConfig:
     """ILD's config as it trains `task_name` (the class defaults with the task's
-    TASK_OVERRIDES), at `batch` envs: the `ild_task` row's."""
+    TASK_OVERRIDES; '' for none), at `batch` envs, `overrides` on top: the `ild_task` row's
+    and `methods.ild.paired`'s variants. ConfigError for a field ILDConfig lacks."""
     from bench.plugins import build_config, get_method
-    return build_config(get_method("ild"), task_name, None, {"num_envs": batch})
+    return build_config(get_method("ild"), task_name, None,
+                        {"num_envs": batch, **(overrides or {})})
 
 
 def speed_setup(task, config: ILDConfig):
@@ -352,6 +354,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     substep = dataclasses.replace(plain, substep_remat=True)
     dots = dataclasses.replace(plain, small_dots=True)
     closed = dataclasses.replace(base, closed_form_adjoint=True)
+    trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     if "forward_dots" in only:
@@ -360,7 +363,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
-            ("ild", "ild", base, 1), ("ild_task", "ild_task", task_config(task_name, batch), 1),
+            ("ild", "ild", base, 1), ("ild_task", "ild_task", trained, 1),
             ("ild_plain", "ild_plain", plain, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
@@ -472,11 +475,10 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         ratios["ild_closed_form_over_apg_closed_form"] = (
             by["ild_closed_form"]["env_steps_per_s"] / by["apg_closed_form"]["env_steps_per_s"])
     if "ild_task" in by:  # like with like where the task trains on rewritten physics
-        cfg = task_config(task_name, batch)
-        if cfg.small_dots:  # its forward rollout is forward_dots (the closed form's is brax's)
+        if trained.small_dots:  # its forward rollout is forward_dots (the closed form's: brax's)
             ratio("task_update_over_forward_dots", "ild_task", "forward_dots")
-        like = ("apg_closed_form" if cfg.closed_form_adjoint else
-                "apg_dots" if cfg.small_dots else None)
+        like = ("apg_closed_form" if trained.closed_form_adjoint else
+                "apg_dots" if trained.small_dots else None)
         if like in by:
             ratios[f"ild_task_over_{like}"] = (by["ild_task"]["env_steps_per_s"]
                                                / by[like]["env_steps_per_s"])

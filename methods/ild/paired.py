@@ -33,9 +33,9 @@ import time
 import jax
 
 from bench.malloc import reexec_with_hugepages
-from bench.plugins import ConfigError, build_config, get_method
+from bench.plugins import ConfigError
 from bench.runner import speed_settings
-from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup
+from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
 from tasks import make_task
@@ -52,8 +52,7 @@ def parse_variant(text: str, batch: int, task_name: str = "") -> ILDConfig:
     parts = [p for p in text.split(",") if p]
     of_task = bool(parts) and parts[0] == "task"
     fields = dict(p.partition("=")[::2] if "=" in p else (p, "true") for p in parts[of_task:])
-    return build_config(get_method("ild"), task=task_name if of_task else "",
-                        overrides={"num_envs": batch, **fields})
+    return task_config(task_name if of_task else "", batch, fields)
 
 
 def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig, brax: bool = False) -> str:
