@@ -206,24 +206,78 @@ def with_substep_remat(task: Task) -> Task:
     rest next to its backward. The same function and gradient (to float32 round-off: tested);
     what it buys is measured by `python -m methods.ild.benchmark` (README ILD speed). The
     registry's cached task is left as it is. Errors for a task with no brax substep loop."""
+    return _rebuilt_substep_loop(task, remat=True, lean=False, option="substep_remat")
+
+
+LEAN_BACKENDS = ("spring", "positional")
+"""brax's maximal-coordinate pipelines: each substep ends by recovering joint coordinates
+(`kinematics.inverse`) from the link frames it integrated, q and qd that the next substep reads
+only in its actuator bias (`actuator.to_tau`)."""
+
+
+def lean_substeps_refusal(task: Task) -> str | None:
+    """Why `with_lean_substeps` cannot rewrite `task` (None where it can): it needs a brax
+    spring or positional step whose actuators have no position or velocity bias (motors: the
+    substeps' q and qd then reach nothing but `q * 0` and `qd * 0`)."""
+    import numpy as np
+    backend = getattr(task.spec, "backend", None)
+    if not has_substep_loop(task) or backend not in LEAN_BACKENDS:
+        return (f"task {task.name!r} steps {backend or 'its own'!s} physics; lean_substeps is "
+                f"for brax's {' and '.join(LEAN_BACKENDS)} backends, whose substeps recompute "
+                "joint coordinates (generalized ones integrate them): leave it False")
+    act = task.env.unwrapped.sys.actuator
+    if np.any(np.asarray(act.bias_q)) or np.any(np.asarray(act.bias_qd)):
+        return (f"task {task.name!r} has actuators that read joint positions or velocities "
+                "(non-zero bias_q / bias_qd: position or velocity servos), so every substep "
+                "needs its q and qd: leave lean_substeps False")
+    return None
+
+
+def with_lean_substeps(task: Task, remat: bool = True) -> Task:
+    """A fresh copy of brax task `task` whose control step skips what only the observation
+    reads: brax's spring and positional substeps each end by recovering joint coordinates q,
+    qd from the link frames (`kinematics.inverse`), and the next substep reads them only as
+    `bias_q * q + bias_qd * qd` in its actuator forces, zero for motors. Here every substep
+    but the last carries the control step's incoming q and qd instead, so XLA drops the
+    inverse kinematics of the first `n_frames - 1` substeps, forward and backward; the last
+    substep computes q and qd as brax does. The same function and gradient to float32
+    round-off (tested; the forces are the same numbers, the fusions around them differ).
+    `remat`: each substep checkpointed, as `with_substep_remat`. Errors for a task it does
+    not fit (`lean_substeps_refusal`)."""
+    why = lean_substeps_refusal(task)
+    if why is not None:
+        raise ValueError(why)
+    return _rebuilt_substep_loop(task, remat=remat, lean=True, option="lean_substeps")
+
+
+def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str) -> Task:
+    """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
+    anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
+    last carrying the incoming q and qd (`lean`)."""
     if not has_substep_loop(task):
-        raise ValueError(f"task {task.name!r} has no brax physics pipeline to rematerialize "
-                         "(substep_remat is for brax PipelineEnv tasks; leave it False)")
+        raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
+                         f"({option} is for brax PipelineEnv tasks; leave it False)")
     env = build_env(task.spec)
     inner, given = env.unwrapped, task.env.unwrapped
     if "pipeline_step" in vars(given):  # it would be dropped: this step is built from brax's
         raise ValueError(f"task {task.name!r} already has its own physics step (a "
-                         "with_substep_remat or with_small_dots copy); apply "
-                         "with_substep_remat first, to the task itself")
+                         "with_substep_remat, with_lean_substeps or with_small_dots copy); "
+                         f"apply the {option} rewrite first, to the task itself")
     inner.sys = given.sys
+    # prevent_cse=False: inside a scan the CSE barrier only costs time
+    wrap = functools.partial(jax.checkpoint, prevent_cse=False) if remat else (lambda f: f)
 
     def pipeline_step(pipeline_state, action):
-        # brax's own pipeline_step (envs/base.py) with the substep checkpointed
-        # (prevent_cse=False: inside a scan the CSE barrier only costs time).
-        @functools.partial(jax.checkpoint, prevent_cse=False)
-        def substep(state, _):
+        def brax_substep(state, _):
             return inner._pipeline.step(inner.sys, state, action, inner._debug), None
-        return jax.lax.scan(substep, pipeline_state, (), inner._n_frames)[0]
+        if not lean:
+            return jax.lax.scan(wrap(brax_substep), pipeline_state, (), inner._n_frames)[0]
+        q, qd = pipeline_state.q, pipeline_state.qd
+
+        def lean_substep(state, _):  # its own q, qd are dead: XLA drops their computation
+            return brax_substep(state, _)[0].replace(q=q, qd=qd), None
+        state = jax.lax.scan(wrap(lean_substep), pipeline_state, (), inner._n_frames - 1)[0]
+        return wrap(brax_substep)(state, None)[0]
 
     inner.pipeline_step = pipeline_step  # the instance's; brax's step calls self.pipeline_step
     return _like(task, Task(spec=task.spec, env=env))

@@ -58,3 +58,16 @@ def temp_method(monkeypatch):
         monkeypatch.setitem(plugins._SOURCES, spec.name, "test")
         return spec
     return register
+
+
+@pytest.fixture
+def apg_timed(monkeypatch):
+    """methods.ild.benchmark with brax's APG stubbed out: every task has a reward gradient
+    and an APG row reports 1000 env-steps/s. The list it returns gets, per APG row timed,
+    whether that row's env runs a rewritten physics step (its own pipeline_step)."""
+    from methods.ild import benchmark
+    timed = []
+    monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
+    monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (
+        timed.append("pipeline_step" in vars(task.env.unwrapped)) or 1000.0))
+    return timed

@@ -940,7 +940,7 @@ def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeyp
                                                         / rows[0]["seconds"], 3)
 
 
-def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):
+def test_speed_benchmark_times_apg_on_small_dots_physics_alone(apg_timed):
     """'dots' is four rows, each a group of its own: a GPU call times ild_substep_dots in the
     ILD process and apg_dots in the APG process. apg_dots alone runs brax's APG on the
     rewritten physics (`with_small_dots`: the env's pipeline_step replaced) and nothing
@@ -949,10 +949,7 @@ def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):
     assert benchmark.expand_rows(("forward", "dots", "apg_dots", "apg")) == (
         "forward", "forward_dots", "ild_dots", "ild_substep_dots", "apg_dots", "apg")
     assert benchmark.expand_rows(("ild_substep_dots",)) == ("ild_substep_dots",)
-    timed = []
-    monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
-    monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (
-        timed.append("pipeline_step" in vars(task.env.unwrapped)) or 1000.0))
+    timed = apg_timed
     rows = benchmark.run("hopper", batch=2, repeats=3, only=("apg_dots",))
     assert [r["what"] for r in rows] == ["apg_dots"] and timed == [True]
     assert rows[0]["seconds"] == pytest.approx(2 * 128 / 1000.0)
@@ -964,17 +961,14 @@ def test_speed_benchmark_times_apg_on_small_dots_physics_alone(monkeypatch):
         benchmark.run("hopper", batch=2, repeats=1, only=("apg_dot",))
 
 
-def test_speed_benchmark_times_apg_through_the_closed_form_backward(monkeypatch):
+def test_speed_benchmark_times_apg_through_the_closed_form_backward(apg_timed):
     """'closed_form' is two rows, each a group of its own: apg_closed_form runs brax's APG on
     acrobot's closed-form-adjoint physics (like with like for ild_closed_form); tasks with
     no closed-form step (hopper) leave both rows out."""
     from methods.ild import benchmark
     assert benchmark.expand_rows(("closed_form", "apg")) == (
         "ild_closed_form", "apg_closed_form", "apg")
-    timed = []
-    monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
-    monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (
-        timed.append("pipeline_step" in vars(task.env.unwrapped)) or 1000.0))
+    timed = apg_timed
     rows = benchmark.run("acrobot", batch=2, repeats=3, only=("apg", "apg_closed_form"))
     assert [r["what"] for r in rows] == ["apg", "apg_closed_form"] and timed == [False, True]
     assert benchmark.run("hopper", batch=2, repeats=1, only=("closed_form",)) == []

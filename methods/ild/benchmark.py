@@ -31,6 +31,11 @@ rows:
                (`--set closed_form_adjoint=true`, `tasks.core.with_closed_form_adjoint`;
                acrobot only): ild_closed_form, and apg_closed_form (brax's APG on the same
                closed-form backward, like with like); each is also a row group of its own
+  lean         every substep but a control step's last without its joint coordinates
+               (`--set lean_substeps=true`, `tasks.core.with_lean_substeps`; brax's spring and
+               positional tasks with motors): forward_lean (the forward rollout on that
+               physics), ild_lean (the `ild` config with it) and apg_lean (brax's APG on the
+               same lean physics, like with like); each is also a row group of its own
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -249,17 +254,20 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
 
 ROWS = ("forward", "ild", "ild_task", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep",
         "ild_both", "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "closed_form",
-        "untransposed", "step", "policy", "chamfer", "apg")
+        "lean", "untransposed", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS, 'closed_form' the two
-CLOSED_FORM_ROWS)."""
+CLOSED_FORM_ROWS, 'lean' the three LEAN_ROWS)."""
 DOTS_ROWS = ("forward_dots", "ild_dots", "ild_substep_dots", "apg_dots")
 """The small-dots rows, each selectable alone (a GPU call that times ILD's rows and APG's in
 separate processes asks for ild_substep_dots in one and apg_dots in the other)."""
 CLOSED_FORM_ROWS = ("ild_closed_form", "apg_closed_form")
 """The closed-form-adjoint rows (tasks with a closed-form step: acrobot), each selectable
 alone."""
-GROUPS = {"dots": DOTS_ROWS, "closed_form": CLOSED_FORM_ROWS}
+LEAN_ROWS = ("forward_lean", "ild_lean", "apg_lean")
+"""The lean-substep rows (brax's spring and positional tasks with motors), each selectable
+alone."""
+GROUPS = {"dots": DOTS_ROWS, "closed_form": CLOSED_FORM_ROWS, "lean": LEAN_ROWS}
 SUBSTEP_ROWS = ("ild_plain", "ild_substep", "ild_both", "ild_substep_chunk")
 """Row groups that differ from `ild` only where a task has brax's substep loop: left out
 elsewhere (pointmass), where they would time the same update again."""
@@ -267,15 +275,15 @@ elsewhere (pointmass), where they would time the same update again."""
 
 def check_rows(only) -> None:
     """ValueError naming any of `only` that is not a row group of ROWS."""
-    unknown = set(only) - set(ROWS) - set(DOTS_ROWS) - set(CLOSED_FORM_ROWS)
+    unknown = set(only) - set(ROWS) - set(DOTS_ROWS) - set(CLOSED_FORM_ROWS) - set(LEAN_ROWS)
     if unknown:
         raise ValueError(f"unknown benchmark rows {sorted(unknown)}; choose from "
-                         f"{ROWS + DOTS_ROWS + CLOSED_FORM_ROWS}")
+                         f"{ROWS + DOTS_ROWS + CLOSED_FORM_ROWS + LEAN_ROWS}")
 
 
 def expand_rows(only) -> tuple[str, ...]:
-    """`only` with the groups 'dots' and 'closed_form' replaced by their rows (DOTS_ROWS,
-    CLOSED_FORM_ROWS), order kept, no repeats."""
+    """`only` with the groups 'dots', 'closed_form' and 'lean' replaced by their rows
+    (DOTS_ROWS, CLOSED_FORM_ROWS, LEAN_ROWS), order kept, no repeats."""
     out = []
     for r in only:
         for x in GROUPS.get(r, (r,)):
@@ -288,7 +296,8 @@ def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...
     """(`rollout_physics(task, config)`, `only`) where `only` asks for a row of `group`
     (GROUPS); (None, `only` without the group's rows), saying so, where the task refuses the
     rewrite (small_dots without a brax physics step, closed_form_adjoint without a closed
-    form) or no row of the group is asked for."""
+    form, lean_substeps off brax's spring and positional backends) or no row of the group is
+    asked for."""
     rows = GROUPS[group]
     if set(rows) & set(only):
         try:
@@ -354,12 +363,17 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     substep = dataclasses.replace(plain, substep_remat=True)
     dots = dataclasses.replace(plain, small_dots=True)
     closed = dataclasses.replace(base, closed_form_adjoint=True)
+    lean = dataclasses.replace(base, lean_substeps=True)
+    lean_plain = dataclasses.replace(plain, lean_substeps=True)  # forward_lean's, apg_lean's
     trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
-    if "forward_dots" in only:
-        fwd = make_rollout_loss(dots_task, policy, goals, norm, dots)
-        row("forward_dots", _time(lambda p: fwd(p, k[3], init_keys)[0], (params,), repeats))
+    lean_task, only = _rewritten_physics(task, lean_plain, "lean", only)
+    for name, physics, cfg in (("forward_dots", dots_task, dots),
+                               ("forward_lean", lean_task, lean_plain)):
+        if name in only:
+            fwd = make_rollout_loss(physics, policy, goals, norm, cfg)
+            row(name, _time(lambda p, f=fwd: f(p, k[3], init_keys)[0], (params,), repeats))
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
@@ -375,6 +389,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             ("ild_substep_dots", "ild_substep_dots",
              dataclasses.replace(substep, small_dots=True), 1),
             ("ild_closed_form", "ild_closed_form", closed, 1),
+            ("ild_lean", "ild_lean", lean, 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -423,9 +438,10 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             lambda xb: chamfer_alpha(xb, goals[0]).loss)(x)))
         row("chamfer", _time(cham, (x,), repeats))
     apg_rows = [(name, physics) for name, physics in
-                (("apg", task), ("apg_dots", dots_task), ("apg_closed_form", closed_task))
-                if with_apg and name in only]  # apg_dots / apg_closed_form: the same trainer
-    # on the same rewritten physics as ild_*_dots / ild_closed_form: like with like
+                (("apg", task), ("apg_dots", dots_task), ("apg_closed_form", closed_task),
+                 ("apg_lean", lean_task))
+                if with_apg and name in only]  # apg_dots / apg_closed_form / apg_lean: the
+    # same trainer on the same rewritten physics as ild_*_dots / ild_closed_form / ild_lean
     if apg_rows and reward_gradient_norm(task) == 0.0:
         print(f"apg: left out on {task_name}: the reward has no gradient (APG's backward "
               "pass is empty and its env-steps/s would time a forward rollout)", flush=True)
@@ -459,10 +475,15 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("dots_substep_update_over_forward", "ild_substep_dots", "forward_dots")
     ratio("closed_form_update_over_forward", "ild_closed_form", "forward")
     ratio("closed_form_speedup", "ild", "ild_closed_form")
+    ratio("lean_forward_speedup", "forward", "forward_lean")
+    ratio("lean_speedup", "ild", "ild_lean")
+    ratio("lean_update_over_forward", "ild_lean", "forward")
+    ratio("lean_update_over_forward_lean", "ild_lean", "forward_lean")
     if "apg" in by:  # env-steps/s of each ILD variant over APG's
         for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
                      f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
-                     "ild_untransposed", "ild_substep_untransposed", "ild_closed_form"):
+                     "ild_untransposed", "ild_substep_untransposed", "ild_closed_form",
+                     "ild_lean"):
             if name in by:
                 ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
                                               / by["apg"]["env_steps_per_s"])
@@ -471,14 +492,20 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             if name in by:
                 ratios[f"{name}_over_apg_dots"] = (by[name]["env_steps_per_s"]
                                                    / by["apg_dots"]["env_steps_per_s"])
+    if "apg_lean" in by and "ild_lean" in by:
+        ratios["ild_lean_over_apg_lean"] = (by["ild_lean"]["env_steps_per_s"]
+                                            / by["apg_lean"]["env_steps_per_s"])
     if "apg_closed_form" in by and "ild_closed_form" in by:
         ratios["ild_closed_form_over_apg_closed_form"] = (
             by["ild_closed_form"]["env_steps_per_s"] / by["apg_closed_form"]["env_steps_per_s"])
     if "ild_task" in by:  # like with like where the task trains on rewritten physics
         if trained.small_dots:  # its forward rollout is forward_dots (the closed form's: brax's)
             ratio("task_update_over_forward_dots", "ild_task", "forward_dots")
+        if trained.lean_substeps:
+            ratio("task_update_over_forward_lean", "ild_task", "forward_lean")
         like = ("apg_closed_form" if trained.closed_form_adjoint else
-                "apg_dots" if trained.small_dots else None)
+                "apg_dots" if trained.small_dots else
+                "apg_lean" if trained.lean_substeps else None)
         if like in by:
             ratios[f"ild_task_over_{like}"] = (by["ild_task"]["env_steps_per_s"]
                                                / by[like]["env_steps_per_s"])
@@ -499,7 +526,8 @@ def main(argv=None):
     p.add_argument("--rows", default=",".join(ROWS),
                    help=f"comma-separated row groups to run (default all: {','.join(ROWS)}; "
                         f"'dots' is {','.join(DOTS_ROWS)}, 'closed_form' is "
-                        f"{','.join(CLOSED_FORM_ROWS)}, each also alone)")
+                        f"{','.join(CLOSED_FORM_ROWS)}, 'lean' is {','.join(LEAN_ROWS)}, each "
+                        "also alone)")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     p.add_argument("--time-lock", default=None, metavar="PATH",
                    help="hold an exclusive lock on PATH around each timed section: several "

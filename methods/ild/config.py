@@ -106,6 +106,19 @@ class ILDConfig:
     while the spring tasks' and acrobot's updates gained nothing (0.91-1.04x; `python -m
     methods.ild.benchmark --rows forward,ild_substep,dots`, README ILD speed, session 29).
     Off in the class; swimmer's TASK_OVERRIDES turn it on (session 39, its cells re-run)."""
+    lean_substeps: bool = False
+    """In the training rollouts, every physics substep but a control step's last skips the
+    joint coordinates (q, qd) that brax's spring and positional substeps recover from their
+    link frames, which the next substep reads only through its actuators' bias (zero for
+    motors) and the observation reads only at the step's end (`tasks.core.with_lean_substeps`).
+    The same function and gradient to float32 round-off, 1.09-1.17x faster updates on the
+    five spring and positional tasks with a reward gradient (one core, B = 32: hopper 0.214 s
+    instead of 0.234, ant 0.775 instead of 0.909; 1.29-1.51x brax's APG instead of
+    1.21-1.34x; `python -m methods.ild.paired --variant substep_remat --variant lean_substeps
+    --apg-physics brax`, README ILD speed, session 40), for a longer compile (hopper's update
+    70 s instead of 49). Tasks on brax's generalized backend, without brax physics, or with
+    servo actuators refuse it. Off by default: on, it changes the run ids of the cells a
+    task has recorded."""
     transposed_backward: bool = True
     """The rollout's policy runs as one batched `TanhGaussianPolicy.sample_batch` per step,
     whose backward reads the kernels transposed once per update instead of transposing each
@@ -153,6 +166,9 @@ class ILDConfig:
              f"hidden must be positive layer sizes, got {self.hidden}"),
             (not (self.closed_form_adjoint and self.small_dots),
              "closed_form_adjoint and small_dots both rewrite the physics step; set one of "
+             "them False"),
+            (not (self.closed_form_adjoint and self.lean_substeps),
+             "closed_form_adjoint and lean_substeps both rewrite the physics step; set one of "
              "them False"),
         ]
         for name in ("learning_rate", "lr_end", "max_grad_norm", "obs_std_min",

@@ -13,8 +13,9 @@ A variant is comma-separated ILDConfig fields (a bare name sets a bool field Tru
 `chunk` is the updates per jitted call, as the trainer runs them. APG and every variant share
 one network (the paper's 512-256) and one batch (`--batch`), so a variant may not set
 `hidden` or `num_envs`. With `small_dots` APG trains on the same rewritten physics (like with
-like, as the benchmark's `apg_dots` row), and with `closed_form_adjoint` through the same
-closed-form backward (`apg_closed_form`), so the variants of one call either all set such a
+like, as the benchmark's `apg_dots` row), with `closed_form_adjoint` through the same
+closed-form backward (`apg_closed_form`) and with `lean_substeps` on the same lean substeps
+(`apg_lean`), so the variants of one call either all set such a
 field or none does. `--apg-physics brax` times brax's APG as shipped instead, whatever the
 variants set (the issue's comparison: ILD's update, rewrites and all, against brax's own
 trainer). A variant that starts with `task` is ILD's config as the task trains it (its
@@ -39,10 +40,12 @@ from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup,
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
 from tasks import make_task
-from tasks.core import with_closed_form_adjoint, with_small_dots
+from tasks.core import with_closed_form_adjoint, with_lean_substeps, with_small_dots
 
-REWRITES = {"small_dots": with_small_dots, "closed_form_adjoint": with_closed_form_adjoint}
-"""ILDConfig fields that rewrite the physics step, with the rewrite APG then trains on."""
+REWRITES = {"small_dots": with_small_dots, "closed_form_adjoint": with_closed_form_adjoint,
+            "lean_substeps": lambda task: with_lean_substeps(task, remat=False)}
+"""ILDConfig fields that rewrite the physics step, with the rewrite APG then trains on (lean
+substeps without substep remat: brax's APG does not rematerialize)."""
 
 
 def parse_variant(text: str, batch: int, task_name: str = "") -> ILDConfig:
