@@ -253,7 +253,8 @@ def with_lean_substeps(task: Task, remat: bool = True) -> Task:
 def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
-    last carrying the incoming q and qd (`lean`)."""
+    last carrying the incoming q and qd (`lean`). `option`: the config field the errors name
+    (and, after 'with_', the function to apply first)."""
     if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
                          f"({option} is for brax PipelineEnv tasks; leave it False)")
@@ -262,7 +263,7 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str) -
     if "pipeline_step" in vars(given):  # it would be dropped: this step is built from brax's
         raise ValueError(f"task {task.name!r} already has its own physics step (a "
                          "with_substep_remat, with_lean_substeps or with_small_dots copy); "
-                         f"apply the {option} rewrite first, to the task itself")
+                         f"apply with_{option} first, to the task itself")
     inner.sys = given.sys
     # prevent_cse=False: inside a scan the CSE barrier only costs time
     wrap = functools.partial(jax.checkpoint, prevent_cse=False) if remat else (lambda f: f)
