@@ -51,10 +51,15 @@
 # task override; the benchmark's ild_task row times each task's update as it trains
 # (ILD_ROWS=forward,ild,ild_task), to set beside `apg` (brax as shipped) and, for the
 # like-with-like ratio, apg_closed_form / apg_dots (CLOSED_FORM_TASKS / DOTS_TASKS).
+#
+# Session 40 (LEAN_TASKS, untried on a GPU): each task in it (spring and positional: hopper,
+# walker2d, ant, humanoid, reacher) adds forward_lean,ild_lean to its ILD process and a
+# second APG process with --rows apg_lean (brax's APG on the same lean substeps), e.g.
+#   T=300 TASKS="hopper ant" ILD_ROWS=forward,ild LEAN_TASKS="hopper ant" bash ...
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
-CLOSED_FORM_TASKS=${CLOSED_FORM_TASKS:-}
+CLOSED_FORM_TASKS=${CLOSED_FORM_TASKS:-} LEAN_TASKS=${LEAN_TASKS:-}
 ILD_TASKS=${ILD_TASKS:-$TASKS} APG_TASKS=${APG_TASKS:-$TASKS} APG_GROUP=${APG_GROUP:-2}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || exit 1
@@ -78,18 +83,22 @@ for phase in ild apg; do
   for t in $tasks; do
     dots=no; [[ " $DOTS_TASKS " == *" $t "* ]] && dots=yes
     cf=no; [[ " $CLOSED_FORM_TASKS " == *" $t "* ]] && cf=yes
+    lean=no; [[ " $LEAN_TASKS " == *" $t "* ]] && lean=yes
     if [ $phase = ild ]; then
       rows=$ILD_ROWS; [ $dots = yes ] && rows=$rows,forward_dots,ild_substep_dots
       [ $cf = yes ] && rows=$rows,ild_closed_form
+      [ $lean = yes ] && rows=$rows,forward_lean,ild_lean
       bm ild_$t --task $t --rows $rows --no-apg & pids+=($!)
     else
       bm apg_$t --task $t --rows apg & pids+=($!) group+=($!)
       [ $dots = yes ] && { bm apg_dots_$t --task $t --rows apg_dots & pids+=($!) group+=($!); }
       [ $cf = yes ] && { bm apg_cf_$t --task $t --rows apg_closed_form & pids+=($!)
                          group+=($!); }
-      # APG_GROUP APG processes at a time (a DOTS_TASKS or CLOSED_FORM_TASKS pair or triple
-      # may make it one or two more): each
-      # timed epoch waits for every warm-up running beside it
+      [ $lean = yes ] && { bm apg_lean_$t --task $t --rows apg_lean & pids+=($!)
+                           group+=($!); }
+      # APG_GROUP APG processes at a time (a DOTS_TASKS, CLOSED_FORM_TASKS or LEAN_TASKS
+      # pair or triple may make it one or two more): each timed epoch waits for every
+      # warm-up running beside it
       [ ${#group[@]} -ge $APG_GROUP ] && { wait "${group[@]}"; group=(); }
     fi
   done
