@@ -6,6 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax import envs as brax_envs
 from brax.envs.base import Env, PipelineEnv, State, Wrapper
 
@@ -219,7 +220,6 @@ def lean_substeps_refusal(task: Task) -> str | None:
     """Why `with_lean_substeps` cannot rewrite `task` (None where it can): it needs a brax
     spring or positional step whose actuators have no position or velocity bias (motors: the
     substeps' q and qd then reach nothing but `q * 0` and `qd * 0`)."""
-    import numpy as np
     backend = getattr(task.spec, "backend", None)
     if not has_substep_loop(task) or backend not in LEAN_BACKENDS:
         return (f"task {task.name!r} steps {backend or 'its own'!s} physics; lean_substeps is "

@@ -187,5 +187,5 @@ def test_paired_times_lean_variants_against_apg_on_the_same_lean_physics():
         return str(jax.make_jaxpr(env.unwrapped.pipeline_step)(
             s.pipeline_state, jnp.zeros(task.action_size))).count("remat")
     hopper = make_task("hopper")
-    assert remats(paired.REWRITES["lean_substeps"](hopper)) == 0
+    assert remats(paired.apg_env(hopper, "lean_substeps")) == 0
     assert remats(rollout_physics(hopper, ILDConfig(lean_substeps=True))) == 2  # both bodies

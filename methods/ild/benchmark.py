@@ -479,36 +479,26 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("lean_speedup", "ild", "ild_lean")
     ratio("lean_update_over_forward", "ild_lean", "forward")
     ratio("lean_update_over_forward_lean", "ild_lean", "forward_lean")
-    if "apg" in by:  # env-steps/s of each ILD variant over APG's
-        for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
-                     f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
-                     "ild_untransposed", "ild_substep_untransposed", "ild_closed_form",
-                     "ild_lean"):
-            if name in by:
-                ratios[f"{name}_over_apg"] = (by[name]["env_steps_per_s"]
-                                              / by["apg"]["env_steps_per_s"])
-    if "apg_dots" in by:  # like with like: both on the rewritten physics
-        for name in ("ild_dots", "ild_substep_dots"):
-            if name in by:
-                ratios[f"{name}_over_apg_dots"] = (by[name]["env_steps_per_s"]
-                                                   / by["apg_dots"]["env_steps_per_s"])
-    if "apg_lean" in by and "ild_lean" in by:
-        ratios["ild_lean_over_apg_lean"] = (by["ild_lean"]["env_steps_per_s"]
-                                            / by["apg_lean"]["env_steps_per_s"])
-    if "apg_closed_form" in by and "ild_closed_form" in by:
-        ratios["ild_closed_form_over_apg_closed_form"] = (
-            by["ild_closed_form"]["env_steps_per_s"] / by["apg_closed_form"]["env_steps_per_s"])
+    def over(name, apg):  # env-steps/s of an ILD row over an APG row's, as {name}_over_{apg}
+        if name in by and apg in by:
+            ratios[f"{name}_over_{apg}"] = (by[name]["env_steps_per_s"]
+                                            / by[apg]["env_steps_per_s"])
+    for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
+                 f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
+                 "ild_untransposed", "ild_substep_untransposed", "ild_closed_form", "ild_lean"):
+        over(name, "apg")
+    # like with like: ILD and APG on the same rewritten physics
+    for name, apg in (("ild_dots", "apg_dots"), ("ild_substep_dots", "apg_dots"),
+                      ("ild_lean", "apg_lean"), ("ild_closed_form", "apg_closed_form")):
+        over(name, apg)
     if "ild_task" in by:  # like with like where the task trains on rewritten physics
         if trained.small_dots:  # its forward rollout is forward_dots (the closed form's: brax's)
             ratio("task_update_over_forward_dots", "ild_task", "forward_dots")
         if trained.lean_substeps:
             ratio("task_update_over_forward_lean", "ild_task", "forward_lean")
-        like = ("apg_closed_form" if trained.closed_form_adjoint else
-                "apg_dots" if trained.small_dots else
-                "apg_lean" if trained.lean_substeps else None)
-        if like in by:
-            ratios[f"ild_task_over_{like}"] = (by["ild_task"]["env_steps_per_s"]
-                                               / by[like]["env_steps_per_s"])
+        over("ild_task", "apg_closed_form" if trained.closed_form_adjoint else
+             "apg_dots" if trained.small_dots else
+             "apg_lean" if trained.lean_substeps else None)
     print({k: round(v, 3) for k, v in ratios.items()}, flush=True)
     for r in rows:
         r.update({k: round(v, 3) for k, v in ratios.items()})

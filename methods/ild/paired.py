@@ -40,12 +40,19 @@ from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup,
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
 from tasks import make_task
-from tasks.core import with_closed_form_adjoint, with_lean_substeps, with_small_dots
 
-REWRITES = {"small_dots": with_small_dots, "closed_form_adjoint": with_closed_form_adjoint,
-            "lean_substeps": lambda task: with_lean_substeps(task, remat=False)}
-"""ILDConfig fields that rewrite the physics step, with the rewrite APG then trains on (lean
-substeps without substep remat: brax's APG does not rematerialize)."""
+REWRITES = ("small_dots", "closed_form_adjoint", "lean_substeps")
+"""ILDConfig fields that rewrite the physics step; APG then trains on the same rewrite
+(`apg_env`)."""
+
+
+def apg_env(task, physics: str):
+    """The task brax's APG trains on for `apg_physics`'s answer: the task itself for 'brax',
+    else the REWRITES field's physics as ILD's `rollout_physics` builds it without substep
+    remat (brax's APG does not rematerialize), as the benchmark's apg_* rows do."""
+    if physics == "brax":
+        return task
+    return rollout_physics(task, ILDConfig(substep_remat=False, **{physics: True}))
 
 
 def parse_variant(text: str, batch: int, task_name: str = "") -> ILDConfig:
@@ -114,7 +121,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             jax.block_until_ready(state)
             seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
-    apg_task = REWRITES[physics](task) if physics in REWRITES else task
+    apg_task = apg_env(task, physics)
     # apg_epochs leaves out APG's warm-up epochs (they compile); time_ild runs after those
     # too, and only its last `rounds` timings, made beside APG's steady epochs, are rounds.
     sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
