@@ -904,7 +904,7 @@ def test_substep_remat_is_the_default_where_brax_has_substeps():
     assert phys is not hopper and "pipeline_step" in vars(phys.env.unwrapped)
     assert rollout_physics(hopper, ILDConfig(substep_remat=False)) is hopper
     assert rollout_physics(pointmass, ILDConfig()) is pointmass
-    assert "ant" not in TASK_OVERRIDES  # ant's whole-step remat (versions 1-4) is gone
+    assert "remat" not in TASK_OVERRIDES["ant"]  # its whole-step remat (versions 1-4) is gone
     assert get_method("ild").version == "5"
 
 
@@ -920,13 +920,14 @@ def test_speed_benchmark_runs_the_rows_asked_for():
 def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
     """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
     the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
-    hopper's the `ild` row's own config, whose timing it then reports again rather than
-    compiling the same update twice."""
+    hopper's lean substeps (session 41), pointmass's the `ild` row's own config, whose timing
+    it then reports again rather than compiling the same update twice."""
     from methods.ild import benchmark
     acro = benchmark.task_config("acrobot", 8)
     assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
     assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
-    assert benchmark.task_config("hopper", 8) == ILDConfig(num_envs=8)
+    assert benchmark.task_config("hopper", 8) == ILDConfig(num_envs=8, lean_substeps=True)
+    assert benchmark.task_config("pointmass", 8) == ILDConfig(num_envs=8)
     compiled = []
     real = benchmark.make_update
     monkeypatch.setattr(benchmark, "make_update",
