@@ -82,7 +82,10 @@ def ild_runs(store: Store, task: str, version: str | None = None):
 
 def table(store: Store, task: str, seconds: float | None = None,
           version: str | None = None) -> pd.DataFrame:
-    """Runs of ILD's `version` only (default: the registered one): `ild_runs`."""
+    """Runs of ILD's `version` only (default: the registered one): `ild_runs`. A setting's
+    seed counts once: where the store holds it twice (the cell re-run after a speed default
+    changed its config and so its run id, e.g. session 41's lean substeps), the latest
+    finished record stands for it."""
     version = ild_version(version)
     rows = []
     for r in ild_runs(store, task, version):
@@ -93,8 +96,12 @@ def table(store: Store, task: str, seconds: float | None = None,
             rows.append({"setting": name, "seed": r["seed"],
                          "normalized": r["final_normalized"] or 0.0,
                          "return": r.get("final_return"),
-                         "transfer": r.get("transfer_normalized")})
-    df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer"])
+                         "transfer": r.get("transfer_normalized"),
+                         "finished": str(r.get("finished") or r.get("started") or "")})
+    df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer",
+                                     "finished"])
+    df = df.sort_values("finished", kind="stable").drop_duplicates(["setting", "seed"],
+                                                                   keep="last")
     if df.empty:
         raise ValueError(f"no ILD (version {version}) ablation runs on {task!r} in "
                          f"{store.root}; run "

@@ -7,10 +7,12 @@ from bench import ablation, tradeoff
 from tasks.core import task_with_backend
 
 
-def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None, version=None):
+def _ild(store, rid, seed, norm, config, num_demos=1, secs=180.0, curve=None, version=None,
+         finished="2026-11-01T00:00:00"):
     from bench.plugins import get_method
     base = {"loss": "chamfer", "truncation": 10, "alpha": 1.0, "num_envs": 32}
     store.write({"run_id": rid, "task": "hopper", "method": "ild", "seed": seed,
+                 "finished": finished,
                  "method_version": version or get_method("ild").version,
                  "status": "ok", "final_normalized": norm, "final_return": 100 * norm,
                  "config": {**base, **config}, "num_demos": num_demos,
@@ -31,6 +33,11 @@ def test_ablation_table_directions_against_the_paper(store):
     assert df.loc["l2", "agrees"] == "yes" and df.loc["l2", "paper_return"] == 173.39
     assert df.loc["trunc1", "ours_vs_base"] == "up" and df.loc["trunc1", "agrees"] == "no"
     assert df.loc["16demos", "ours_vs_base"] == "same" and df.loc["16demos", "agrees"] == "-"
+    # base seed 1 re-run with a speed default on (another config, another run id): the
+    # latest record stands for the seed, which counts once
+    _ild(store, "b1lean", 1, 0.70, {"lean_substeps": True}, finished="2026-11-26T22:00:00")
+    base = ablation.table(store, "hopper").set_index("setting").loc["base"]
+    assert base["seeds"] == 2 and base["normalized"] == pytest.approx(0.75)
     with pytest.raises(ValueError, match="ildbench ablate --task reacher"):
         ablation.table(store, "reacher")
     reqs = ablation.requests("hopper", 180, seeds=(0,))
