@@ -56,6 +56,9 @@
 # walker2d, ant, humanoid, reacher) adds forward_lean,ild_lean to its ILD process and a
 # second APG process with --rows apg_lean (brax's APG on the same lean substeps), e.g.
 #   T=300 TASKS="hopper ant" ILD_ROWS=forward,ild LEAN_TASKS="hopper ant" bash ...
+# Since session 41 those five and inverted_pendulum train with lean substeps by task
+# override, so their ild_task row is the lean update (on the five, ild_lean's own config,
+# timed once); with LEAN_TASKS it is also set beside apg_lean.
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
