@@ -159,16 +159,16 @@ def test_lean_substeps_are_the_default_wherever_a_task_allows_them():
     on exactly where `lean_substeps_refusal` has no objection, and `build_config` gives those
     tasks a config with it (inverted_pendulum keeping its full BPTT)."""
     from bench.plugins import build_config, get_method
-    from methods.ild.config import TASK_OVERRIDES
+    from methods.ild.config import LEAN_SUBSTEP_TASKS, TASK_OVERRIDES
     from tasks.registry import TASKS
     lean = {name for name, over in TASK_OVERRIDES.items() if over.get("lean_substeps")}
     allowed = {name for name in TASKS if lean_substeps_refusal(make_task(name)) is None}
-    assert lean == allowed == {"hopper", "walker2d", "ant", "humanoid", "reacher",
+    assert set(LEAN_SUBSTEP_TASKS) == lean == allowed == {"hopper", "walker2d", "ant", "humanoid", "reacher",
                                "inverted_pendulum"}
     ild = get_method("ild")
     assert build_config(ild, "ant", "cpu", {}).lean_substeps is True
     ip = build_config(ild, "inverted_pendulum", "cpu", {})
-    assert ip.lean_substeps is True and ip.truncation == 128
+    assert ip.lean_substeps is True and ip.truncation == 128  # merged, not replaced
     assert build_config(ild, "swimmer", "cpu", {}).lean_substeps is False
     assert build_config(ild, "hopper", "cpu", {"lean_substeps": "false"}).lean_substeps is False
 

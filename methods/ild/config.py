@@ -207,8 +207,7 @@ TASK_OVERRIDES: dict[str, dict] = {
     # 1.000 (README ILD section). test_truncated_bptt_climbs_inverted_pendulums_loss_and_
     # full_bptt_descends_it trains 40 updates of each from one warm start (B = 16): the loss
     # climbs 0.0105 -> ~3.4 at truncation 10 and settles at ~0.02 at 128 (session 37).
-    # Its lean_substeps: with the other spring and positional tasks' below.
-    "inverted_pendulum": {"truncation": 128, "lean_substeps": True},
+    "inverted_pendulum": {"truncation": 128},
     # acrobot: full BPTT too. From the BC warm start the truncation-10 gradient's cosine with
     # the true one is -0.389 and Adam's first step along it raises the loss (lr 1e-3: 2.00x),
     # at 128 the cosine is 1.000 (`python -m methods.ild.probe --task acrobot --num-envs 32
@@ -236,19 +235,22 @@ TASK_OVERRIDES: dict[str, dict] = {
     # ~4 s on one CPU core: 50 substeps per step) and Adam lr 1e-4. A preset wins over these
     # (the cpu preset sets num_envs 32): cloth runs pass --set num_envs=10.
     "cloth": {"num_envs": 10, "learning_rate": 1e-4},
-    # Lean substeps (session 41) on the spring and positional tasks: the same rollout and
-    # gradient to float32 round-off (tests/test_lean_substeps.py), with the inverse
-    # kinematics of every substep but a control step's last dropped; one core, B = 32,
-    # paired against brax's APG as shipped (session 40, results/lean/paired_lean_*.csv):
-    # updates 1.09-1.17x faster (hopper 0.234 -> 0.214 s, walker2d 0.375 -> 0.337, ant
-    # 0.909 -> 0.775, humanoid 1.197 -> 1.074, reacher 0.336 -> 0.305), 1.29-1.51x APG
-    # instead of 1.21-1.34x; inverted_pendulum 0.251 -> 0.228 s (benchmark). Session 41
-    # re-ran these tasks' 3- and 10-minute ILD cells with it (README ILD section).
-    **{name: {"lean_substeps": True} for name in
-       ("hopper", "walker2d", "ant", "humanoid", "reacher")},
     # ant ran with whole-step `remat` in versions 1-4 (1.34x faster than none: its per-step
     # residuals are 811 MiB per update, mapped afresh on every call; session 18). Since
     # version 5 every brax task rematerializes each substep by default, which is faster still
     # on ant (1.334 vs 1.518 s per update; 125-128 vs 105-114 updates in 3-minute cells,
     # session 27) in 123 MiB, so ant has no remat override.
 }
+
+# Lean substeps (session 41) on the spring and positional tasks: the same rollout and
+# gradient to float32 round-off (tests/test_lean_substeps.py), with the inverse kinematics
+# of every substep but a control step's last dropped; one core, B = 32, paired against
+# brax's APG as shipped (session 40, results/lean/paired_lean_*.csv): updates 1.09-1.17x
+# faster (hopper 0.234 -> 0.214 s, walker2d 0.375 -> 0.337, ant 0.909 -> 0.775, humanoid
+# 1.197 -> 1.074, reacher 0.336 -> 0.305), 1.29-1.51x APG instead of 1.21-1.34x;
+# inverted_pendulum 0.251 -> 0.228 s (benchmark). Session 41 re-ran these tasks' 3- and
+# 10-minute ILD cells with it (README ILD section). Merged into the entries above.
+LEAN_SUBSTEP_TASKS = ("hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum")
+for _name in LEAN_SUBSTEP_TASKS:
+    TASK_OVERRIDES[_name] = {**TASK_OVERRIDES.get(_name, {}), "lean_substeps": True}
+del _name
