@@ -80,6 +80,13 @@ def ild_runs(store: Store, task: str, version: str | None = None):
             yield r
 
 
+def keep_latest(df: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """One row per `keys`: the latest by its 'finished' column. A cell re-run after a speed
+    default changed its config, and so its run id (e.g. session 41's lean substeps), leaves
+    two finished records of the same cell and seed in a store; the newer stands for it."""
+    return df.sort_values("finished", kind="stable").drop_duplicates(keys, keep="last")
+
+
 def table(store: Store, task: str, seconds: float | None = None,
           version: str | None = None) -> pd.DataFrame:
     """Runs of ILD's `version` only (default: the registered one): `ild_runs`. A setting's
@@ -100,8 +107,7 @@ def table(store: Store, task: str, seconds: float | None = None,
                          "finished": str(r.get("finished") or r.get("started") or "")})
     df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer",
                                      "finished"])
-    df = df.sort_values("finished", kind="stable").drop_duplicates(["setting", "seed"],
-                                                                   keep="last")
+    df = keep_latest(df, ["setting", "seed"])
     if df.empty:
         raise ValueError(f"no ILD (version {version}) ablation runs on {task!r} in "
                          f"{store.root}; run "

@@ -163,8 +163,8 @@ def test_lean_substeps_are_the_default_wherever_a_task_allows_them():
     from tasks.registry import TASKS
     lean = {name for name, over in TASK_OVERRIDES.items() if over.get("lean_substeps")}
     allowed = {name for name in TASKS if lean_substeps_refusal(make_task(name)) is None}
-    assert set(LEAN_SUBSTEP_TASKS) == lean == allowed == {"hopper", "walker2d", "ant", "humanoid", "reacher",
-                               "inverted_pendulum"}
+    assert set(LEAN_SUBSTEP_TASKS) == lean == allowed == {
+        "hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum"}
     ild = get_method("ild")
     assert build_config(ild, "ant", "cpu", {}).lean_substeps is True
     ip = build_config(ild, "inverted_pendulum", "cpu", {})

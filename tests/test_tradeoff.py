@@ -69,6 +69,15 @@ def test_ild_grid_table(store):
     assert df.iloc[0].normalized == 0.7  # the older ILD's record is left out
     assert tradeoff.ild_table(store, "hopper", version="0").iloc[0].normalized == 0.1
     assert df.iloc[0].env_steps_per_s == pytest.approx(1000 / 180)
+    # (1, 8) seed 0 re-run with a speed default on (another config, so another run id):
+    # the latest record stands for the cell's seed, which counts once
+    _ild(store, "a_lean", 0, 0.9, {"truncation": 1, "num_envs": 8, "lean_substeps": True},
+         finished="2026-11-27T04:00:00")
+    _ild(store, "a_s1", 1, 0.3, {"truncation": 1, "num_envs": 8})   # another seed: kept
+    df = tradeoff.ild_table(store, "hopper")
+    assert len(df) == 4 and "finished" not in df.columns
+    cell = df[(df.truncation == 1) & (df.batch == 8)]
+    assert list(cell.seed) == [0, 1] and list(cell.normalized) == [0.9, 0.3]
     reqs = tradeoff.ild_requests("hopper", 60)
     assert len(reqs) == 9 and {r.overrides["num_envs"] for r in reqs} == {8, 32, 128}
 

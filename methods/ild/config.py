@@ -118,8 +118,7 @@ class ILDConfig:
     --apg-physics brax`, README ILD speed, session 40), for a longer compile (hopper's update
     70 s instead of 49). Tasks on brax's generalized backend, without brax physics, or with
     servo actuators refuse it. Off in the class; since session 41 the TASK_OVERRIDES of
-    hopper, walker2d, ant, humanoid, reacher and inverted_pendulum turn it on (their ILD
-    cells re-run with it)."""
+    the tasks in `LEAN_SUBSTEP_TASKS` turn it on (their ILD cells re-run with it)."""
     transposed_backward: bool = True
     """The rollout's policy runs as one batched `TanhGaussianPolicy.sample_batch` per step,
     whose backward reads the kernels transposed once per update instead of transposing each
