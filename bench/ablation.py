@@ -80,11 +80,15 @@ def ild_runs(store: Store, task: str, version: str | None = None):
             yield r
 
 
-def keep_latest(df: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
-    """One row per `keys`: the latest by its 'finished' column. A cell re-run after a speed
-    default changed its config, and so its run id (e.g. session 41's lean substeps), leaves
-    two finished records of the same cell and seed in a store; the newer stands for it."""
-    return df.sort_values("finished", kind="stable").drop_duplicates(keys, keep="last")
+def latest_per(records, key) -> dict:
+    """{key(r): r}, each key's record the one finished last ('finished', else 'started'; ties
+    to the later in `records`). A cell re-run after a speed default changed its config, and
+    so its run id (e.g. session 41's lean substeps), leaves two finished records of the same
+    cell and seed in a store; the newer stands for it."""
+    latest = {}
+    for r in sorted(records, key=lambda r: str(r.get("finished") or r.get("started") or "")):
+        latest[key(r)] = r
+    return latest
 
 
 def table(store: Store, task: str, seconds: float | None = None,
@@ -94,20 +98,13 @@ def table(store: Store, task: str, seconds: float | None = None,
     changed its config and so its run id, e.g. session 41's lean substeps), the latest
     finished record stands for it."""
     version = ild_version(version)
-    rows = []
-    for r in ild_runs(store, task, version):
-        if seconds is not None and (r.get("budget") or {}).get("seconds") != seconds:
-            continue
-        name = _setting_of(r)
-        if name is not None:
-            rows.append({"setting": name, "seed": r["seed"],
-                         "normalized": r["final_normalized"] or 0.0,
-                         "return": r.get("final_return"),
-                         "transfer": r.get("transfer_normalized"),
-                         "finished": str(r.get("finished") or r.get("started") or "")})
-    df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer",
-                                     "finished"])
-    df = keep_latest(df, ["setting", "seed"])
+    runs = (r for r in ild_runs(store, task, version)
+            if seconds is None or (r.get("budget") or {}).get("seconds") == seconds)
+    rows = [{"setting": name, "seed": seed, "normalized": r["final_normalized"] or 0.0,
+             "return": r.get("final_return"), "transfer": r.get("transfer_normalized")}
+            for (name, seed), r in latest_per(runs, lambda r: (_setting_of(r), r["seed"])).items()
+            if name is not None]
+    df = pd.DataFrame(rows, columns=["setting", "seed", "normalized", "return", "transfer"])
     if df.empty:
         raise ValueError(f"no ILD (version {version}) ablation runs on {task!r} in "
                          f"{store.root}; run "

@@ -207,23 +207,22 @@ def ild_table(store: Store, task: str, version: str | None = None) -> pd.DataFra
     """ILD's truncation x batch runs on `task`, of ILD `version` only (default: the
     registered one; an older ILD's records left in the store are not mixed in). A cell's
     seed counts once: the latest finished record at that budget stands for it
-    (`ablation.keep_latest`)."""
-    from bench.ablation import ild_runs, keep_latest
+    (`ablation.latest_per`)."""
+    from bench.ablation import ild_runs, latest_per
+    latest = latest_per(ild_runs(store, task, version),
+                        lambda r: (r["config"]["truncation"], r["config"]["num_envs"], r["seed"],
+                                   r["budget"]["seconds"]))
     rows = []
-    for r in ild_runs(store, task, version):
+    for r in latest.values():
         c = r["config"]
         rows.append({"truncation": c["truncation"], "batch": c["num_envs"], "seed": r["seed"],
                      "status": r["status"], "normalized": r["final_normalized"],
                      "updates": r["train_metrics"].get("train/updates"),
                      "env_steps": r["env_steps"],
                      "env_steps_per_s": r["env_steps"] / max(r["train_s"], 1e-9),
-                     "budget_s": r["budget"]["seconds"],
-                     "finished": str(r.get("finished") or r.get("started") or "")})
-    if not rows:
-        return pd.DataFrame(rows)
-    df = keep_latest(pd.DataFrame(rows), ["truncation", "batch", "seed", "budget_s"])
-    return df.drop(columns="finished").sort_values(["truncation", "batch", "seed"],
-                                                   ignore_index=True)
+                     "budget_s": r["budget"]["seconds"]})
+    df = pd.DataFrame(rows)
+    return df.sort_values(["truncation", "batch", "seed"], ignore_index=True) if rows else df
 
 
 def _save(df: pd.DataFrame, task: str, part: str, out: str) -> list[str]:
