@@ -61,7 +61,7 @@ def git_revision() -> str | None:
 def speed_settings() -> dict:
     """The process settings that change speed but no number, as records and the speed CSVs
     name them: `xla_flags`, the environment's XLA_FLAGS (None unset; XLA's code generator,
-    README ILD speed, session 28), and `malloc_hugetlb`, glibc's huge-page tunable
+    results/JOURNAL.md, session 28), and `malloc_hugetlb`, glibc's huge-page tunable
     (bench.malloc; None unset: `ildbench` sets it to "1" where it can act, session 32)."""
     from bench.malloc import hugetlb
     return {"xla_flags": os.environ.get("XLA_FLAGS") or None,

@@ -205,7 +205,7 @@ def with_substep_remat(task: Task) -> Task:
     substep's intermediate values into per-substep buffers (hundreds of arrays, one copy each
     per substep); checkpointed, a substep stores only its input state and recomputes the
     rest next to its backward. The same function and gradient (to float32 round-off: tested);
-    what it buys is measured by `python -m methods.ild.benchmark` (README ILD speed). The
+    what it buys is measured by `python -m methods.ild.benchmark` (results/JOURNAL.md). The
     registry's cached task is left as it is. Errors for a task with no brax substep loop."""
     return _rebuilt_substep_loop(task, remat=True, lean=False, option="substep_remat")
 
@@ -338,7 +338,7 @@ def with_small_dots(task: Task) -> Task:
     `with_substep_remat` copies) whose physics step computes its small matrix products as
     multiply-and-sum (`tasks.small_dots.small_dots_as_sums`): the same function and gradient
     to float32 round-off (tested), which XLA's CPU backend runs faster where a step is made
-    of tiny products (swimmer's generalized step; README ILD speed, session 29). The
+    of tiny products (swimmer's generalized step; results/JOURNAL.md, session 29). The
     registry's cached task is left as it is. Errors for a task with no brax physics step.
     Apply it after `with_substep_remat` (which builds its step from brax's substep and refuses
     a copy that has its own): the checkpointed substeps are then rewritten inside."""

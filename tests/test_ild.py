@@ -492,7 +492,7 @@ def test_benchmark_counts_the_page_faults_of_a_calls_working_memory():
     """XLA's CPU runtime maps a call's working memory afresh on every call: a (4096, 16) x
     (16, 4096) float32 product that is then summed needs a 64 MiB scratch result, and each
     timed call faults in its 16,384 pages of 4 KiB (64 MiB). This is the per-call cost that
-    K updates in one scan pay once (README, ILD speed); if a jaxlib upgrade starts reusing
+    K updates in one scan pay once (results/JOURNAL.md); if a jaxlib upgrade starts reusing
     the buffer, this fails and that finding needs re-measuring."""
     from methods.ild.benchmark import _time
     x = jnp.ones((4096, 16))

@@ -42,7 +42,7 @@ def dense_t(x: jax.Array, kernel: jax.Array, kernel_t: jax.Array) -> jax.Array:
     x's cotangent as g @ kernel_t, with kernel_t = kernel.T made once outside the rollout's
     loop (it gets no cotangent), and kernel's as one product over all leading axes of x.
     XLA's CPU backend runs g @ kernel.T, the product reverse mode otherwise emits, at about
-    half the speed of g @ kernel_t (32x256 by 256x512: 233 vs 104 us; README ILD speed)."""
+    half the speed of g @ kernel_t (32x256 by 256x512: 233 vs 104 us; results/JOURNAL.md)."""
     return jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
 
 

@@ -93,8 +93,8 @@ class ILDConfig:
     of 2.018 on ant (1.518 with whole-step `remat`; `python -m methods.ild.benchmark`,
     session 27). With glibc's huge-page tunable (`bench.malloc`) still 1.08-1.31x faster,
     for 1.09-1.24x (acrobot, hopper, reacher) to 1.46-1.50x (humanoid, ant) APG's env-steps/s
-    against 1.02-1.22x without it (`python -m methods.ild.paired`, sessions 32-33; README ILD
-    speed; swimmer 0.86x: its cost is elsewhere, `small_dots`). On by default
+    against 1.02-1.22x without it (`python -m methods.ild.paired`, sessions 32-33;
+    results/JOURNAL.md; swimmer 0.86x: its cost is elsewhere, `small_dots`). On by default
     since version 5 (session 33; versions 1-4 ran without it, so their records pool apart).
     Tasks without brax's substep loop (pointmass, cloth) have nothing to rematerialize: there
     it changes nothing."""
@@ -104,7 +104,7 @@ class ILDConfig:
     round-off, faster where XLA's CPU backend runs a step as many tiny batched products:
     swimmer's update with `substep_remat` took 0.651 s instead of 1.769 on one core at B = 32,
     while the spring tasks' and acrobot's updates gained nothing (0.91-1.04x; `python -m
-    methods.ild.benchmark --rows forward,ild_substep,dots`, README ILD speed, session 29).
+    methods.ild.benchmark --rows forward,ild_substep,dots`, results/JOURNAL.md, session 29).
     Off in the class; swimmer's TASK_OVERRIDES turn it on (session 39, its cells re-run)."""
     lean_substeps: bool = False
     """In the training rollouts, every physics substep but a control step's last skips the
@@ -115,7 +115,7 @@ class ILDConfig:
     five spring and positional tasks with a reward gradient (one core, B = 32: hopper 0.214 s
     instead of 0.234, ant 0.775 instead of 0.909; 1.29-1.51x brax's APG instead of
     1.21-1.34x; `python -m methods.ild.paired --variant substep_remat --variant lean_substeps
-    --apg-physics brax`, README ILD speed, session 40), for a longer compile (hopper's update
+    --apg-physics brax`, results/JOURNAL.md, session 40), for a longer compile (hopper's update
     70 s instead of 49). Tasks on brax's generalized backend, without brax physics, or with
     servo actuators refuse it. Off in the class; since session 41 the TASK_OVERRIDES of
     the tasks in `LEAN_SUBSTEP_TASKS` turn it on (their ILD cells re-run with it)."""
@@ -137,13 +137,13 @@ class ILDConfig:
     backward no longer reads brax's substeps). On one core at B = 32 acrobot's update took
     0.058 s instead of 0.117, 2.1x its forward rollout instead of 4.3x, 2.2x brax's APG
     (1.14x APG through the same closed-form backward; `python -m methods.ild.benchmark
-    --task acrobot --rows forward,ild,closed_form,apg`, README ILD speed, session 38).
+    --task acrobot --rows forward,ild,closed_form,apg`, results/JOURNAL.md, session 38).
     Tasks without a closed form refuse it. Off in the class; acrobot's TASK_OVERRIDES turn
     it on (session 39: session 38's cells with it are the 10-minute grid's acrobot cells)."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
-    remat; ~4% on ant, which rematerializes and so avoids most of them: README ILD speed);
+    remat; ~4% on ant, which rematerializes and so avoids most of them: results/JOURNAL.md);
     each call runs only the updates the budget has left, so it never overruns it."""
     joint_limits: bool = True
     """False: the training rollouts run on a copy of the task without its joint-range
@@ -215,7 +215,7 @@ TASK_OVERRIDES: dict[str, dict] = {
     # acrobot also differentiates its physics through its closed-form step (session 39): the
     # same rollout bit for bit and the same gradient to float32 round-off as brax's reverse
     # mode, in half the time (one core, B = 32: 0.058 s per update instead of 0.117, 2.1x
-    # its forward rollout, 2.2x brax's APG; README ILD speed, session 38). The session-38
+    # its forward rollout, 2.2x brax's APG; results/JOURNAL.md, session 38). The session-38
     # cells with it scored as the reverse-mode cells seed by seed (0.850 / 0.893 / 0.838)
     # with 5,000 updates in 299-305 s instead of 554-574; they are the grid's acrobot cells.
     "acrobot": {"truncation": 128, "closed_form_adjoint": True},
@@ -248,7 +248,7 @@ TASK_OVERRIDES: dict[str, dict] = {
 # faster (hopper 0.234 -> 0.214 s, walker2d 0.375 -> 0.337, ant 0.909 -> 0.775, humanoid
 # 1.197 -> 1.074, reacher 0.336 -> 0.305), 1.29-1.51x APG instead of 1.21-1.34x;
 # inverted_pendulum 0.251 -> 0.228 s (benchmark). Session 41 re-ran these tasks' 3- and
-# 10-minute ILD cells with it (README ILD section). Merged into the entries above.
+# 10-minute ILD cells with it (results/JOURNAL.md). Merged into the entries above.
 LEAN_SUBSTEP_TASKS = ("hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum")
 for _name in LEAN_SUBSTEP_TASKS:
     TASK_OVERRIDES[_name] = {**TASK_OVERRIDES.get(_name, {}), "lean_substeps": True}

@@ -89,7 +89,7 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
 
         # prevent_cse=False: inside a scan the body is not unrolled, so the CSE barrier
         # jax.checkpoint adds by default only costs time (7-10% of an update measured on
-        # hopper, walker2d and ant, same gradient; README ILD speed).
+        # hopper, walker2d and ant, same gradient; results/JOURNAL.md).
         step_fn = jax.checkpoint(body, prevent_cse=False) if config.remat else body
         _, (ms, acts, dones) = jax.lax.scan(step_fn, s0,
                                             (jnp.arange(T), jax.random.split(k_act, T)))

@@ -19,9 +19,9 @@
 # process (seconds); the rows each process finished are in its CSV and log, which come back
 # in $OUT/speed_logs.tgz.
 #
-# Session 34 ran it twice on one H200 (results/gpu/speed_session34, README): call 1 started
-# all 14 processes at once with no shared hold (APG's first epochs could share the GPU with a
-# timed section), T=400, every row but acrobot's APG (brax's trainer lacked the JAX shim
+# Session 34 ran it twice on one H200 (results/gpu/speed_session34, results/JOURNAL.md): call 1
+# started all 14 processes at once with no shared hold (APG's first epochs could share the GPU
+# with a timed section), T=400, every row but acrobot's APG (brax's trainer lacked the JAX shim
 # there; apg_epochs applies it since); call 2 started them at once with the shared hold and
 # stalled (the GPU idle from 60 s to 240 s, every process at its T=355 limit).
 #

@@ -5,7 +5,7 @@
 Twenty chained products of 32 5x5 matrices (`tanh` between them), once as `a @ b` (a batched
 `dot_general`: one library call per product) and once as a broadcast multiply and a sum
 (`tasks.small_dots`' rewrite, by hand): microseconds per call (min over 3 rounds of 500
-calls) and the largest difference between the two results. README ILD speed, session 29:
+calls) and the largest difference between the two results. results/JOURNAL.md, session 29:
 380 vs 86 us, the same numbers to the bit, and no XLA flag of jaxlib 0.7.2 moves the dots.
 """
 import os

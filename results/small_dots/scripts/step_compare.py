@@ -6,7 +6,7 @@ Prints the largest difference of q and qd after one step from states 10 steps in
 difference of the VJP's action cotangent (cotangent of ones), and each form's forward and VJP
 microseconds per call (min over 3 rounds of 100 calls). `--unroll-newton-schulz` instead times
 brax's generalized mass-matrix inverse with its Newton-Schulz `lax.scan` unrolled by hand (the
-same arithmetic; README ILD speed, session 29: not the loop, the products cost).
+same arithmetic; results/JOURNAL.md, session 29: not the loop, the products cost).
 """
 import argparse
 import os

@@ -6,7 +6,7 @@ Forward and VJP (forward + backward, cotangent of ones) of each function brax's 
 generalized pipeline step calls, vmapped over B envs and jitted alone, on states 10 control
 steps in (contacts active): microseconds per call (min over 3 rounds of 100 calls) and
 VJP / forward, then one whole control step (all its substeps) the same way.
-README ILD speed: spring (session 28), no piece dominates and none is far past 3x;
+results/JOURNAL.md: spring (session 28), no piece dominates and none is far past 3x;
 generalized (session 29), where swimmer's and acrobot's step goes.
 """
 from __future__ import annotations

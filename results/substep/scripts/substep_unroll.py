@@ -5,7 +5,7 @@
 FORM: brax (its own `lax.scan` over the substeps), ckpt (each substep checkpointed, as
 `substep_remat`), unroll (the scan unrolled), ckpt_unroll (both), ckpt_unroll_cse (both,
 checkpoint with prevent_cse=True). Milliseconds per call, min over 3 rounds of 50 calls.
-README ILD speed, session 28: unrolling is slower than the scan (hopper 2.8-5.8 ms per step
+results/JOURNAL.md, session 28: unrolling is slower than the scan (hopper 2.8-5.8 ms per step
 VJP against 2.55).
 """
 from __future__ import annotations

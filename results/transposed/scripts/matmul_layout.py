@@ -5,9 +5,9 @@
 The 512-256 layer for 32 envs, jitted alone, microseconds per call (min over 3 rounds of 200
 calls): the forward product x @ W; reverse mode's product for x's cotangent, g @ W.T, as
 flax's backward emits it (the transpose folded into the dot) and against a transposed copy
-of W made beforehand (what `dense_t` reads); and the kernel's cotangent x.T @ g. README ILD
-speed, session 31: 110 / 233 / 104 / 137 us on this machine's EPYC (one core); the three
-products do the same multiply-adds.
+of W made beforehand (what `dense_t` reads); and the kernel's cotangent x.T @ g.
+results/JOURNAL.md, session 31: 110 / 233 / 104 / 137 us on this machine's EPYC (one core);
+the three products do the same multiply-adds.
 """
 import os
 import sys
