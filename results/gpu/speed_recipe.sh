@@ -43,7 +43,7 @@
 # the APG processes with the ILD ones (one phase; the lock still keeps every timed section
 # alone on the GPU, but a timed section waits for every APG warm-up).
 #
-# Session 38 (CLOSED_FORM_TASKS, untried on a GPU): each task in it (acrobot, the one with a
+# Session 38 (CLOSED_FORM_TASKS, first run on a GPU in session 45): each task in it (acrobot, the one with a
 # closed-form step) adds ild_closed_form to its ILD process and a second APG process with
 # --rows apg_closed_form (brax's APG through the same closed-form backward), e.g.
 #   T=270 TASKS=acrobot ILD_ROWS=forward,ild CLOSED_FORM_TASKS=acrobot bash ...
@@ -52,18 +52,33 @@
 # (ILD_ROWS=forward,ild,ild_task), to set beside `apg` (brax as shipped) and, for the
 # like-with-like ratio, apg_closed_form / apg_dots (CLOSED_FORM_TASKS / DOTS_TASKS).
 #
-# Session 40 (LEAN_TASKS, untried on a GPU): each task in it (spring and positional: hopper,
+# Session 40 (LEAN_TASKS, first run on a GPU in session 45): each task in it (spring and positional: hopper,
 # walker2d, ant, humanoid, reacher) adds forward_lean,ild_lean to its ILD process and a
 # second APG process with --rows apg_lean (brax's APG on the same lean substeps), e.g.
 #   T=300 TASKS="hopper ant" ILD_ROWS=forward,ild LEAN_TASKS="hopper ant" bash ...
 # Since session 41 those five and inverted_pendulum train with lean substeps by task
 # override, so their ild_task row is the lean update (on the five, ild_lean's own config,
 # timed once); with LEAN_TASKS it is also set beside apg_lean.
+#
+# Session 45 (one H200, results/gpu/speed_session45): one call, `T=300 APG_GROUP=4
+# TASKS="acrobot swimmer hopper ant" ILD_ROWS=forward,ild,ild_task CLOSED_FORM_TASKS=acrobot
+# DOTS_TASKS=swimmer LEAN_TASKS="hopper ant"`, timeout 570 s. The ILD phase took 161 s; the
+# first APG group of four (acrobot's and swimmer's pairs) 166-232 s, since four of brax's
+# APG warm-ups at once compile for 40-100 s each and every timed epoch waits for them; the
+# second group (hopper's and ant's) was cut off by the call's limit before its first epoch,
+# and the tarball at the end never ran (a second call fetched /tmp/speed from the warm
+# machine). Hence: the watcher below re-packs $OUT/speed_logs.tgz every 10 s, so a call
+# cut off at its limit still brings back every row it finished; and ILD_TASKS=none /
+# APG_TASKS=none skip a phase. brax's APG on hopper and ant (lean or as shipped) compiles
+# its first epoch in 100-116 s on that image even two at a time, so for those two, e.g.
+#   T=280 ILD_TASKS=none APG_TASKS=hopper LEAN_TASKS=hopper bash ...   (one pair, ~250 s)
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
 CLOSED_FORM_TASKS=${CLOSED_FORM_TASKS:-} LEAN_TASKS=${LEAN_TASKS:-}
 ILD_TASKS=${ILD_TASKS:-$TASKS} APG_TASKS=${APG_TASKS:-$TASKS} APG_GROUP=${APG_GROUP:-2}
+[ "$ILD_TASKS" = none ] && ILD_TASKS=
+[ "$APG_TASKS" = none ] && APG_TASKS=
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
@@ -76,8 +91,11 @@ cat /tmp/speed/machine.txt
 bm() { tag=$1; shift; timeout $T python3 -m methods.ild.benchmark --batch $B --repeats $R \
     --chunk 1 --time-lock /tmp/speed/lock --out /tmp/speed/$tag.csv "$@" \
     > /tmp/speed/$tag.log 2>&1; echo "$tag exit $?"; }
+pack() { [ -n "$OUT" ] && tar czf $OUT/.speed_logs.tgz -C /tmp speed \
+    && mv $OUT/.speed_logs.tgz $OUT/speed_logs.tgz; }
 (while true; do sleep 10; nvidia-smi --query-gpu=utilization.gpu,memory.used \
-    --format=csv,noheader; done) > /tmp/speed/smi.log 2>&1 &
+    --format=csv,noheader >> /tmp/speed/smi.log 2>&1; pack; done) > /dev/null 2>&1 &
+watcher=$!
 pids=() group=()
 for phase in ild apg; do
   [ -z "$TOGETHER" ] && pids=()
@@ -106,8 +124,9 @@ for phase in ild apg; do
     fi
   done
   [ -n "$TOGETHER" ] && [ $phase = ild ] && continue  # one phase: all processes at once
-  wait "${pids[@]}"
+  [ ${#pids[@]} -gt 0 ] && wait "${pids[@]}"  # a bare wait would wait for the watcher
   echo "phase $phase ends $(date +%T)"
 done
+kill $watcher
 grep -h "^{'task'" /tmp/speed/*.log
-tar czf $OUT/speed_logs.tgz -C /tmp speed
+pack
