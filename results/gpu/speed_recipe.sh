@@ -44,8 +44,9 @@
 # alone on the GPU, but a timed section waits for every APG warm-up).
 #
 # Session 38 (CLOSED_FORM_TASKS, first run on a GPU in session 45): each task in it
-# (acrobot, the one with a closed-form step) adds ild_closed_form to its ILD process and a second APG process with
-# --rows apg_closed_form (brax's APG through the same closed-form backward), e.g.
+# (acrobot, the one with a closed-form step) adds ild_closed_form to its ILD process and a
+# second APG process with --rows apg_closed_form (brax's APG through the same closed-form
+# backward), e.g.
 #   T=270 TASKS=acrobot ILD_ROWS=forward,ild CLOSED_FORM_TASKS=acrobot bash ...
 # Since session 39 acrobot trains through its closed form and swimmer with small dots by
 # task override; the benchmark's ild_task row times each task's update as it trains
@@ -53,8 +54,9 @@
 # like-with-like ratio, apg_closed_form / apg_dots (CLOSED_FORM_TASKS / DOTS_TASKS).
 #
 # Session 40 (LEAN_TASKS, first run on a GPU in session 45): each task in it (spring and
-# positional: hopper, walker2d, ant, humanoid, reacher) adds forward_lean,ild_lean to its ILD process and a
-# second APG process with --rows apg_lean (brax's APG on the same lean substeps), e.g.
+# positional: hopper, walker2d, ant, humanoid, reacher) adds forward_lean,ild_lean to its
+# ILD process and a second APG process with --rows apg_lean (brax's APG on the same lean
+# substeps), e.g.
 #   T=300 TASKS="hopper ant" ILD_ROWS=forward,ild LEAN_TASKS="hopper ant" bash ...
 # Since session 41 those five and inverted_pendulum train with lean substeps by task
 # override, so their ild_task row is the lean update (on the five, ild_lean's own config,
