@@ -46,8 +46,15 @@ for side in SIDE1 SIDE2; do
   taskset -c $i,$((i+1)) bash -c "sw $side.s$S ${!side} --budget $B --preset paper" & pids+=($!)
   i=$((i+2))
 done
-(while true; do sleep 60; nvidia-smi --query-gpu=utilization.gpu,memory.used \
-    --format=csv,noheader; done) > /tmp/logs/smi.s$S.log 2>&1 &
+# pack: the run records written since the start and the logs, into $OUT under a temporary
+# name and then renamed, so a call cut off at its limit still brings back a whole tarball of
+# every record finished by the last pack (session 46; speed_recipe.sh does the same)
+pack() { find $STORE -type f -newer /tmp/stamp | tar czf $OUT/.runs_s$S.tgz -T - \
+    && mv $OUT/.runs_s$S.tgz $OUT/runs_s$S.tgz
+    tar czf $OUT/.logs_s$S.tgz /tmp/logs && mv $OUT/.logs_s$S.tgz $OUT/logs_s$S.tgz; }
+(while true; do sleep 30; nvidia-smi --query-gpu=utilization.gpu,memory.used \
+    --format=csv,noheader >> /tmp/logs/smi.s$S.log 2>&1; pack; done) > /dev/null 2>&1 &
+watcher=$!
 wait "${pids[@]}"
-find $STORE -type f -newer /tmp/stamp | tar czf $OUT/runs_s$S.tgz -T -
-tar czf $OUT/logs_s$S.tgz /tmp/logs
+kill $watcher
+pack

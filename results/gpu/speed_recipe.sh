@@ -74,6 +74,14 @@
 # APG_TASKS=none skip a phase. brax's APG on hopper and ant (lean or as shipped) compiles
 # its first epoch in 100-116 s on that image even two at a time, so for those two, e.g.
 #   T=280 ILD_TASKS=none APG_TASKS=hopper LEAN_TASKS=hopper bash ...   (one pair, ~250 s)
+#
+# Session 46 (one H200, results/gpu/speed_session46): three calls on one warm machine,
+#   T=370 APG_GROUP=4 ILD_TASKS=none APG_TASKS="hopper ant" LEAN_TASKS="hopper ant" (281 s),
+#   T=300 APG_TASKS=none ILD_TASKS="hopper ant walker2d humanoid reacher"
+#     ILD_ROWS=forward,ild,ild_task LEAN_TASKS="<the same five>" (186 s),
+#   T=300 APG_GROUP=4 ILD_TASKS=none APG_TASKS="walker2d reacher" LEAN_TASKS=<the same> (288 s):
+# four APG processes at once reach their timed epoch in 180-196 s. /tmp/speed outlives a call
+# on a warm machine, so the last call's tarball holds every call's logs.
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
