@@ -72,13 +72,15 @@ def env_with_hugepages(env: Mapping[str, str]) -> dict | None:
             _DONE: "1"}  # never twice, even where the C library dropped the tunable
 
 
-def reexec_with_hugepages(module: str) -> None:
-    """Re-execute this process as `python -m <module> <the same arguments>` with the tunable
-    (`env_with_hugepages`); returns where there is nothing to add. For command-line entry
-    points only: it replaces the running process."""
+def reexec_with_hugepages(module: str | None = None) -> None:
+    """Re-execute this process as `python -m <module> <the same arguments>` (without a
+    module, as `python <the same script and arguments>`: a script under results/) with the
+    tunable (`env_with_hugepages`); returns where there is nothing to add. For command-line
+    entry points only: it replaces the running process."""
     env = env_with_hugepages(os.environ)
     if env is None:
         return
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, "-m", module, *sys.argv[1:]], env)
+    argv = ["-m", module, *sys.argv[1:]] if module else sys.argv
+    os.execve(sys.executable, [sys.executable, *argv], env)

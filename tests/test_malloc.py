@@ -61,6 +61,12 @@ def test_ildbench_reexecutes_itself_once_with_the_tunable(able, monkeypatch):
         cli.entry()
     assert calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "run", "--task",
                                        "pointmass"], "glibc.malloc.hugetlb=1")]
+    monkeypatch.setattr(sys, "argv", ["results/x/scripts/s.py", "hopper", "--out", "o.csv"])
+    with pytest.raises(SystemExit):  # no module: a script under results/ runs itself again
+        malloc.reexec_with_hugepages()
+    assert calls[-1] == (sys.executable, [sys.executable, "results/x/scripts/s.py", "hopper",
+                                          "--out", "o.csv"], "glibc.malloc.hugetlb=1")
+    del calls[1:]
     monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.hugetlb=1")  # the re-executed process
     assert cli.entry() == 7 and len(calls) == 1
     monkeypatch.delenv("GLIBC_TUNABLES")

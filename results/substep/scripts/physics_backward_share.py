@@ -5,7 +5,8 @@ adjoint have to be for the update to cost <= 3x a forward rollout? (session 46)
         [--out CSV]
 
 Times in one process, as `python -m methods.ild.benchmark` does (`_time`: compiled once,
-then the mean over `--repeats` calls; with glibc's huge-page tunable, `bench.malloc`), B envs, the config TASK trains with (`ild_task`):
+then the mean over `--repeats` calls; with glibc's huge-page tunable, `bench.malloc`), B
+envs, the config TASK trains with (`ild_task`):
 - `forward`: the 128-step rollout and its Chamfer loss through brax's step as shipped (the
   benchmark's `forward`, the issue's yardstick), and `forward_trained` through the physics
   the update differentiates (lean substeps on the spring and positional tasks);
@@ -27,14 +28,12 @@ adjoint spends one of those on recomputing the forward).
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import sys
 
 import jax
 import jax.numpy as jnp
 
-from bench.malloc import env_with_hugepages
+from bench.malloc import reexec_with_hugepages
+from bench.report import append_csv
 from methods.ild.benchmark import _time, make_rollout_loss, speed_setup, task_config
 from methods.ild.train import initial_state, make_update, rollout_physics
 from tasks import make_task
@@ -83,9 +82,7 @@ def with_no_physics(task):
 
 
 def main():
-    env = env_with_hugepages(os.environ)  # as the benchmark and `ildbench` run (bench.malloc)
-    if env is not None:
-        os.execve(sys.executable, [sys.executable, *sys.argv], env)
+    reexec_with_hugepages()  # as the benchmark and `ildbench` run (bench.malloc)
     p = argparse.ArgumentParser()
     p.add_argument("task")
     p.add_argument("--batch", type=int, default=32)
@@ -109,10 +106,11 @@ def main():
         sec[name] = _time(lambda s: upd(s, None)[0], (state,), a.repeats).seconds
         print(name, round(sec[name], 4), flush=True)
 
+    trained = rollout_physics(task, cfg)  # a fresh copy each: the with_* below rewrite theirs
     forward("forward", task)
-    forward("forward_trained", rollout_physics(task, cfg))
+    forward("forward_trained", trained)
     forward("forward_no_physics", with_no_physics(rollout_physics(task, cfg)))
-    update("update", rollout_physics(task, cfg))
+    update("update", trained)
     update("update_free_backward", with_free_backward(rollout_physics(task, cfg)))
     P = sec["forward_trained"] - sec["forward_no_physics"]
     Q = sec["update"] - sec["update_free_backward"]
@@ -127,12 +125,7 @@ def main():
                (3 * sec["forward"] - sec["update_free_backward"]) / P, 3)}
     print(row, flush=True)
     if a.out:
-        new = not os.path.exists(a.out)
-        with open(a.out, "a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        append_csv([row], a.out)
 
 
 if __name__ == "__main__":
