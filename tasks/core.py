@@ -250,10 +250,36 @@ def with_lean_substeps(task: Task, remat: bool = True) -> Task:
     return _rebuilt_substep_loop(task, remat=remat, lean=True, option="lean_substeps")
 
 
-def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str) -> Task:
+def hand_adjoint_refusal(task: Task) -> str | None:
+    """Why `with_hand_adjoint` cannot rewrite `task` (None where it can): its hand-written
+    VJPs are of brax's spring substep (`tasks.spring_adjoint`)."""
+    backend = getattr(task.spec, "backend", None)
+    if backend != "spring":
+        return (f"task {task.name!r} runs {backend!r} physics; hand_adjoint writes the VJP of "
+                "brax's spring substep (hopper, walker2d, ant, humanoid); leave it False")
+    return None
+
+
+def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False) -> Task:
+    """A fresh copy of brax spring task `task` whose substeps run `tasks.spring_adjoint.step`:
+    brax's spring substep with its integration's VJP written by hand (the same values and
+    gradient to float32 round-off: tests/test_hand_adjoint.py). `remat` and `lean` as
+    `with_substep_remat` and `with_lean_substeps`. Errors for a task it does not fit."""
+    why = hand_adjoint_refusal(task)
+    if why is None and lean:
+        why = lean_substeps_refusal(task)
+    if why is not None:
+        raise ValueError(why)
+    return _rebuilt_substep_loop(task, remat=remat, lean=lean, option="hand_adjoint",
+                                 hand_adjoint=True)
+
+
+def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
+                          hand_adjoint: bool = False) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
-    last carrying the incoming q and qd (`lean`). `option`: the config field the errors name
+    last carrying the incoming q and qd (`lean`), and/or each substep
+    `tasks.spring_adjoint.step` (`hand_adjoint`). `option`: the config field the errors name
     (and, after 'with_', the function to apply first)."""
     if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
@@ -268,9 +294,14 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str) -
     # prevent_cse=False: inside a scan the CSE barrier only costs time
     wrap = functools.partial(jax.checkpoint, prevent_cse=False) if remat else (lambda f: f)
 
+    if hand_adjoint:
+        from tasks.spring_adjoint import step as substep_fn
+    else:
+        substep_fn = inner._pipeline.step
+
     def pipeline_step(pipeline_state, action):
         def brax_substep(state, _):
-            return inner._pipeline.step(inner.sys, state, action, inner._debug), None
+            return substep_fn(inner.sys, state, action, inner._debug), None
         if not lean:
             return jax.lax.scan(wrap(brax_substep), pipeline_state, (), inner._n_frames)[0]
         q, qd = pipeline_state.q, pipeline_state.qd

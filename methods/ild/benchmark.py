@@ -36,6 +36,9 @@ rows:
                positional tasks with motors): forward_lean (the forward rollout on that
                physics), ild_lean (the `ild` config with it) and apg_lean (brax's APG on the
                same lean physics, like with like); each is also a row group of its own
+  ild_hand     the ild_task config with `hand_adjoint` (`tasks.spring_adjoint`: brax's spring
+               substep with hand-written VJPs for its integration and its conversion to world
+               frames; brax's spring tasks only, left out elsewhere)
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -88,7 +91,7 @@ from methods.ild.losses import chamfer_alpha
 from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
                                make_update, rollout_physics)
 from tasks import make_task
-from tasks.core import has_substep_loop, open_loop
+from tasks.core import hand_adjoint_refusal, has_substep_loop, open_loop
 
 
 def temp_bytes(compiled) -> int:
@@ -254,7 +257,7 @@ def reward_gradient_norm(task, batch: int = 4, steps: int = 8) -> float:
 
 ROWS = ("forward", "ild", "ild_task", "ild_plain", "ild_no_gn", "ild_remat", "ild_substep",
         "ild_both", "ild_chunk", "ild_remat_chunk", "ild_substep_chunk", "dots", "closed_form",
-        "lean", "untransposed", "step", "policy", "chamfer", "apg")
+        "lean", "ild_hand", "untransposed", "step", "policy", "chamfer", "apg")
 """Row groups `--rows` picks from ('ild_chunk' names the ild_chunkK row; 'step' and
 'policy' are the forward + VJP pairs; 'dots' is the four DOTS_ROWS, 'closed_form' the two
 CLOSED_FORM_ROWS, 'lean' the three LEAN_ROWS)."""
@@ -390,6 +393,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
              dataclasses.replace(substep, small_dots=True), 1),
             ("ild_closed_form", "ild_closed_form", closed, 1),
             ("ild_lean", "ild_lean", lean, 1),
+            ("ild_hand", "ild_hand", dataclasses.replace(trained, hand_adjoint=True), 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -399,6 +403,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         if group in SUBSTEP_ROWS and not has_substep_loop(task):
             print(f"{name}: left out on {task_name}: no brax substep loop to rewrite",
                   flush=True)
+            continue
+        if cfg.hand_adjoint and hand_adjoint_refusal(task) is not None:
+            print(f"{name}: left out on {task_name}: {hand_adjoint_refusal(task)}", flush=True)
             continue
         if (cfg, n) in timed:
             row(name, timed[cfg, n], per_call=n)
@@ -479,13 +486,17 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("lean_speedup", "ild", "ild_lean")
     ratio("lean_update_over_forward", "ild_lean", "forward")
     ratio("lean_update_over_forward_lean", "ild_lean", "forward_lean")
+    ratio("hand_speedup", "ild_task", "ild_hand")
+    ratio("hand_update_over_forward", "ild_hand", "forward")
+    ratio("hand_update_over_forward_lean", "ild_hand", "forward_lean")
     def over(name, apg):  # env-steps/s of an ILD row over an APG row's, as {name}_over_{apg}
         if name in by and apg in by:
             ratios[f"{name}_over_{apg}"] = (by[name]["env_steps_per_s"]
                                             / by[apg]["env_steps_per_s"])
     for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
                  f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
-                 "ild_untransposed", "ild_substep_untransposed", "ild_closed_form", "ild_lean"):
+                 "ild_untransposed", "ild_substep_untransposed", "ild_closed_form", "ild_lean",
+                 "ild_hand"):
         over(name, "apg")
     # like with like: ILD and APG on the same rewritten physics
     for name, apg in (("ild_dots", "apg_dots"), ("ild_substep_dots", "apg_dots"),

@@ -140,6 +140,19 @@ class ILDConfig:
     --task acrobot --rows forward,ild,closed_form,apg`, results/JOURNAL.md, session 38).
     Tasks without a closed form refuse it. Off in the class; acrobot's TASK_OVERRIDES turn
     it on (session 39: session 38's cells with it are the 10-minute grid's acrobot cells)."""
+    hand_adjoint: bool = False
+    """Run the training rollouts' spring substeps as `tasks.spring_adjoint.step`: brax's
+    substep with the VJPs of its inverse inertia, integration and conversion to link frames
+    written by hand instead of XLA's reverse mode of brax's code. The same rollout and
+    gradient to float32 round-off (tests/test_hand_adjoint.py). The first pieces of a
+    hand-written adjoint of brax's physics, the route issue 4's update <= 3x forward needs
+    (the physics' backward is 64-78% of the update: results/JOURNAL.md, sessions 46-47);
+    paired on one core at B = 32 (`python -m methods.ild.paired --variant task --variant
+    task,hand_adjoint --apg-physics brax`, session 47) the update ran 1.19-1.23x faster on
+    hopper, walker2d, ant and humanoid, 1.46-1.85x brax's APG; update / forward 4.05-4.28x
+    instead of 4.75-5.28x (README ILD speed). Tasks not on brax's spring backend refuse it.
+    Off everywhere: the recorded cells ran without it, and turning it on changes a task's
+    config and so its run ids."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -170,6 +183,9 @@ class ILDConfig:
             (not (self.closed_form_adjoint and self.lean_substeps),
              "closed_form_adjoint and lean_substeps both rewrite the physics step; set one of "
              "them False"),
+            (not (self.closed_form_adjoint and self.hand_adjoint),
+             "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
+             "set one of them False"),
         ]
         for name in ("learning_rate", "lr_end", "max_grad_norm", "obs_std_min",
                      "state_std_min"):

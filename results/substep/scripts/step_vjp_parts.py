@@ -5,7 +5,8 @@
 Forward and VJP (forward + backward, cotangent of ones) of each function brax's spring or
 generalized pipeline step calls, vmapped over B envs and jitted alone, on states 10 control
 steps in (contacts active): microseconds per call (min over 3 rounds of 100 calls) and
-VJP / forward, then one whole control step (all its substeps) the same way.
+VJP / forward, then one whole control step (all its substeps) the same way; on spring tasks
+also the pieces `tasks.spring_adjoint` writes with a hand-written VJP (session 47).
 results/JOURNAL.md: spring (session 28), no piece dominates and none is far past 3x;
 generalized (session 29), where swimmer's and acrobot's step goes.
 """
@@ -35,6 +36,19 @@ def spring_parts(sys_) -> dict:
         "com.to_world": lambda p, u: com.to_world(sys_, p.x_i, p.xd_i),
         "kinematics.world_to_joint": lambda p, u: kinematics.world_to_joint(sys_, p.x, p.xd),
         "kinematics.inverse": lambda p, u: kinematics.inverse(sys_, p.j, p.jd),
+    }
+
+
+def hand_parts(sys_) -> dict:
+    """The pieces `tasks.spring_adjoint` writes with a hand-written VJP (`hand_adjoint`,
+    session 47), on the same inputs as their brax rows in `spring_parts`."""
+    from tasks import spring_adjoint as sa
+    return {
+        "inv_inertia (hand VJP)": lambda p, u: sa.inv_inertia(sys_, p.x),
+        "integrator.integrate (hand VJP)": lambda p, u: sa.integrate(sys_, p.x_i, p.xd_i,
+                                                                     p.xd_i * 0.01),
+        "com.to_world (hand VJP)": lambda p, u: sa.to_world(sys_, p.x_i, p.xd_i),
+        "one whole substep (hand_adjoint)": lambda p, u: sa.step(sys_, p, u),
     }
 
 
@@ -69,6 +83,8 @@ def main(argv=None):
     ps, act = states_in(task, a.batch)
     parts = spring_parts(sys_) if task.spec.backend == "spring" else generalized_parts(sys_)
     parts["one whole substep"] = lambda p, u: env._pipeline.step(sys_, p, u)
+    if task.spec.backend == "spring":
+        parts.update(hand_parts(sys_))
     parts[f"one control step ({env._n_frames} substeps)"] = env.pipeline_step
     print_forward_and_vjp(parts, ps, act)
 
