@@ -369,6 +369,8 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     lean = dataclasses.replace(base, lean_substeps=True)
     lean_plain = dataclasses.replace(plain, lean_substeps=True)  # forward_lean's, apg_lean's
     trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
+    hand = (dataclasses.replace(trained, hand_adjoint=True)  # the ild_hand row's (spring)
+            if hand_adjoint_refusal(task) is None else None)
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     lean_task, only = _rewritten_physics(task, lean_plain, "lean", only)
@@ -393,7 +395,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
              dataclasses.replace(substep, small_dots=True), 1),
             ("ild_closed_form", "ild_closed_form", closed, 1),
             ("ild_lean", "ild_lean", lean, 1),
-            ("ild_hand", "ild_hand", dataclasses.replace(trained, hand_adjoint=True), 1),
+            ("ild_hand", "ild_hand", hand, 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -404,7 +406,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             print(f"{name}: left out on {task_name}: no brax substep loop to rewrite",
                   flush=True)
             continue
-        if cfg.hand_adjoint and hand_adjoint_refusal(task) is not None:
+        if cfg is None:  # ild_hand off brax's spring backend
             print(f"{name}: left out on {task_name}: {hand_adjoint_refusal(task)}", flush=True)
             continue
         if (cfg, n) in timed:
