@@ -14,8 +14,9 @@ What it is for: ILD's update is mostly brax's physics backward (64-78% of it:
 results/JOURNAL.md, session 46), and these hand-written backwards cost less inside the
 substep scan than XLA's reverse mode of the same lines. Jitted alone they gain less or
 nothing (32 hopper envs, `python results/substep/scripts/step_vjp_parts.py hopper`: VJPs
-of 79, 80 and 80 us against XLA's 105, 84 and 78; one substep's 652 against 718). Paired on one core (session 47,
-`python -m methods.ild.paired --variant task --variant task,hand_adjoint`), the update ran
+of 79, 80 and 80 us against XLA's 105, 84 and 78; one substep's 652 against 718). Paired
+on one core (session 47, `python -m methods.ild.paired --variant task --variant
+task,hand_adjoint`), the update ran
 1.07x (hopper) and 1.08x (walker2d) faster with `integrate` alone, 1.14x (hopper) with
 `integrate` and `to_world`, and 1.19-1.23x on hopper, walker2d, ant and humanoid with all
 three (README ILD speed; results/JOURNAL.md, session 47).
