@@ -1,25 +1,40 @@
 """brax's spring substep with hand-written VJPs for some of its pieces (`hand_adjoint`).
 
 `step` computes what `brax.spring.pipeline.step` computes, in brax's order and with brax's
-own functions, except three pieces written here with their VJP by hand (`jax.custom_vjp`):
-the inverse inertia in world frame (`inv_inertia`, for `brax.com.inv_inertia`), the
-integration (`integrate`, for `brax.spring.integrator.integrate`: damp the velocities, add
-the collision's delta-velocity, advance positions, rotate and renormalize the quaternions)
-and the conversion from centre-of-mass to link frames (`to_world`, for `brax.com.to_world`).
-Their forward values are brax's to float32 round-off and their VJPs are the same linear
+own functions, except seven pieces written here with their VJP by hand (`jax.custom_vjp`):
+- the inverse inertia in world frame (`inv_inertia`, for `brax.com.inv_inertia`);
+- the constraint force of a 1-dof (hinge or slide) joint in its joint frame (`one_dof`, for
+  `brax.spring.joints._one_dof`: the hand-written VJP is in the joint's state and force;
+  the system's fields get XLA's reverse mode of brax's function);
+- the joint forces' move from joint frames to the links' centres of mass, the tail of
+  `brax.spring.joints.resolve` (`joints_resolve`; 2- and 3-dof joints' forces stay
+  brax's);
+- the contact impulses' move to the links' centres of mass, their averaging and conversion
+  to delta-velocities, the tail of `brax.spring.collisions.resolve` (`collisions_resolve`;
+  the contacts and each contact's impulse stay brax's);
+- the integration (`integrate`, for `brax.spring.integrator.integrate`: damp the
+  velocities, add the collision's delta-velocity, advance positions, rotate and renormalize
+  the quaternions);
+- the conversion from centre-of-mass to link frames (`to_world`, for `brax.com.to_world`);
+- the conversion to joint frames and motions (`world_to_joint`, for
+  `brax.kinematics.world_to_joint`).
+Their forward values are brax's (bit for bit, or to float32 round-off for the inverse
+inertia, integration and conversion to link frames) and their VJPs are the same linear
 maps as XLA's reverse mode of brax's code, in the state and in the system fields they read
-(tests/test_hand_adjoint.py, which a wrong sign in any one term fails).
+(tests/test_hand_adjoint.py, which a wrong sign or a swapped factor in any one term
+fails).
 
 What it is for: ILD's update is mostly brax's physics backward (64-78% of it:
 results/JOURNAL.md, session 46), and these hand-written backwards cost less inside the
-substep scan than XLA's reverse mode of the same lines. Jitted alone they gain less or
-nothing (32 hopper envs, `python results/substep/scripts/step_vjp_parts.py hopper`: VJPs
-of 79, 80 and 80 us against XLA's 105, 84 and 78; one substep's 652 against 718). Paired
-on one core (session 47, `python -m methods.ild.paired --variant task --variant
-task,hand_adjoint`), the update ran
-1.07x (hopper) and 1.08x (walker2d) faster with `integrate` alone, 1.14x (hopper) with
-`integrate` and `to_world`, and 1.19-1.23x on hopper, walker2d, ant and humanoid with all
-three (README ILD speed; results/JOURNAL.md, session 47).
+substep scan than XLA's reverse mode of the same lines. Jitted alone they gain little or
+nothing (`python results/substep/scripts/step_vjp_parts.py hopper`); inside the update they
+add up. Paired on one core (`python -m methods.ild.paired --variant task --variant
+task,hand_adjoint`), hopper's update ran 1.07x faster with `integrate` alone, 1.14x with
+`to_world` too, 1.22x with `inv_inertia` too (session 47; 1.19-1.23x on walker2d, ant and
+humanoid), no faster with `world_to_joint` too and 1.40x with the joint forces' tail too,
+1.47x with the contacts' tail too (session 48; README ILD speed, results/JOURNAL.md). A
+hand-written VJP of brax's actuator forces (`actuator.to_tau`) gained nothing there
+(session 48) and was left out.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -34,11 +49,13 @@ and in dt, a_v, a_w (system fields): <gp, v'> + <gu, (0, w') * rot> / 2, <g_v', 
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
-from brax import actuator, contact, fluid, kinematics, math
-from brax.base import Motion, Transform
-from brax.spring import collisions, joints
+from brax import actuator, contact, fluid, kinematics, math, scan
+from brax.base import Force, Motion, Transform
+from brax.spring import joints
 
 
 def _pure(w):
@@ -57,10 +74,12 @@ def integrate(sys, x_i: Transform, xd_i: Motion, xdv_i: Motion) -> tuple[Transfo
     dt = jnp.asarray(sys.opt.timestep, x_i.pos.dtype)
     a_v = jnp.exp(sys.vel_damping * dt)
     a_w = jnp.exp(sys.ang_damping * dt)
-    return _integrate(x_i, xd_i, xdv_i, dt, a_v, a_w)
+    pos, rot, vel, ang = _integrate(x_i.pos, x_i.rot, xd_i.vel, xd_i.ang, xdv_i.vel,
+                                    xdv_i.ang, dt, a_v, a_w)
+    return Transform(pos=pos, rot=rot), Motion(vel=vel, ang=ang)
 
 
-def _forward(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w):
+def _integrate_forward(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w):
     v = a_v * vel + dvel
     w = a_w * ang + dang
     wq = _pure(w)
@@ -72,30 +91,23 @@ def _forward(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w):
 
 
 @jax.custom_vjp
-def _op(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w):
-    return _forward(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w)[0]
+def _integrate(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w):
+    return _integrate_forward(pos, rot, vel, ang, dvel, dang, dt, a_v, a_w)[0]
 
 
-def _op_bwd(res, g):
+def _integrate_bwd(res, g):
     rot, vel, ang, v, r, n, wq, wq_rot, dt, a_v, a_w = res
     gp, gr, gv, gw = g
-    gu = (gr - r * jnp.sum(r * gr, -1, keepdims=True)) / n
+    gu = (gr - r * _dot(r, gr)) / n
     g_rot = gu - 0.5 * dt * _qmul(wq, gu)
-    conj = rot * jnp.array([1.0, -1.0, -1.0, -1.0], rot.dtype)
     g_v = gv + dt * gp
-    g_w = gw + 0.5 * dt * _qmul(gu, conj)[..., 1:]
+    g_w = gw + 0.5 * dt * _qmul(gu, math.quat_inv(rot))[..., 1:]
     g_dt = jnp.sum(gp * v) + 0.5 * jnp.sum(gu * wq_rot)
     return (gp, g_rot, a_v * g_v, a_w * g_w, g_v, g_w, g_dt, jnp.sum(g_v * vel),
             jnp.sum(g_w * ang))
 
 
-_op.defvjp(_forward, _op_bwd)
-
-
-def _integrate(x_i, xd_i, xdv_i, dt, a_v, a_w):
-    pos, rot, vel, ang = _op(x_i.pos, x_i.rot, xd_i.vel, xd_i.ang, xdv_i.vel, xdv_i.ang,
-                             dt, a_v, a_w)
-    return Transform(pos=pos, rot=rot), Motion(vel=vel, ang=ang)
+_integrate.defvjp(_integrate_forward, _integrate_bwd)
 
 
 def _rotate(vec, quat):
@@ -108,6 +120,18 @@ def _rotate(vec, quat):
 
 def _dot(a, b):
     return jnp.sum(a * b, -1, keepdims=True)
+
+
+def _rotate_vjp_quat(vec, quat, g):
+    """The VJP of `_rotate(vec, quat)` in the quaternion (s, u), for a cotangent g of the
+    rotated vector: g_s = g . (2 s vec + 2 u x vec),
+    g_u = 2 vec (u . g) + 2 (u . vec) g - 2 u (vec . g) + 2 s vec x g. (In the vector it is
+    `_rotate(g, quat_inv(quat))`: the transpose of the rotation matrix.)"""
+    s, u = quat[..., :1], quat[..., 1:]
+    g_s = _dot(g, 2 * s * vec + 2 * jnp.cross(u, vec))
+    g_u = (2 * vec * _dot(u, g) + 2 * _dot(u, vec) * g - 2 * u * _dot(vec, g)
+           + 2 * s * jnp.cross(vec, g))
+    return jnp.concatenate([g_s, g_u], -1)
 
 
 def to_world(sys, x_i: Transform, xd_i: Motion) -> tuple[Transform, Motion]:
@@ -136,13 +160,8 @@ def _to_world_bwd(res, g):
     rot_i, ang_i, c, p = res
     g_pos, g_rot, g_vel, g_ang = g
     g_r = g_pos + jnp.cross(g_vel, ang_i)
-    s, u = rot_i[..., :1], rot_i[..., 1:]
-    g_s = _dot(g_r, 2 * s * c + 2 * jnp.cross(u, c))
-    g_u = (2 * c * _dot(u, g_r) + 2 * _dot(u, c) * g_r - 2 * u * _dot(c, g_r)
-           + 2 * s * jnp.cross(c, g_r))
-    conj = rot_i * jnp.array([1.0, -1.0, -1.0, -1.0], rot_i.dtype)
-    return (g_pos, g_rot + jnp.concatenate([g_s, g_u], -1), g_vel,
-            g_ang + jnp.cross(p, g_vel), _rotate(g_r, conj))
+    return (g_pos, g_rot + _rotate_vjp_quat(c, rot_i, g_r), g_vel,
+            g_ang + jnp.cross(p, g_vel), _rotate(g_r, math.quat_inv(rot_i)))
 
 
 _to_world.defvjp(_to_world_forward, _to_world_bwd)
@@ -204,22 +223,339 @@ def _inv_inertia_bwd(res, g):
     g_u = (2 * ((g_m + jnp.swapaxes(g_m, -1, -2)) @ u[..., None])[..., 0] - 2 * tr * u
            + 2 * s * ax)
     g_ri = jnp.concatenate([2 * s * tr + 2 * _dot(u, ax), g_u], -1)
-    flip = jnp.array([1.0, -1.0, -1.0, -1.0], ri.dtype)  # conjugation
     g_d = jnp.einsum("...ik,...ij,...jk->...k", m, g, m)
-    return _qmul(g_ri, i_rot * flip), _qmul(x_rot * flip, g_ri), g_d
+    return _qmul(g_ri, math.quat_inv(i_rot)), _qmul(math.quat_inv(x_rot), g_ri), g_d
 
 
 _inv_inertia.defvjp(_inv_inertia_forward, _inv_inertia_bwd)
 
 
+def world_to_joint(sys, x: Transform, xd: Motion
+                   ) -> tuple[Transform, Motion, Transform, Transform]:
+    """`brax.kinematics.world_to_joint(sys, x, xd)` with a hand-written VJP: per link, its
+    parent's frame and motion (x_p, xd_p: the world's, zero, for a root), the joint frame on
+    the parent a_p = x_p . link.transform . link.joint and on the link
+    a_c = x . link.joint, the joint transform j = a_c in a_p's basis, and the joint motion
+    jd = R(a_p)^T (xd - xd_p + (x_p.pos - a_p.pos) x xd_p.ang, xd.ang - xd_p.ang). Its VJP
+    chains those compositions backwards (`_rotate_vjp_quat`, the quaternion product's
+    transposes), the gathers from the parents becoming sums into them; it also covers the
+    system's link and joint frames (`link.transform`, `link.joint`)."""
+    out = _world_to_joint(tuple(sys.link_parents), x.pos, x.rot, xd.vel, xd.ang,
+                          sys.link.transform.pos, sys.link.transform.rot,
+                          sys.link.joint.pos, sys.link.joint.rot)
+    j_pos, j_rot, jd_vel, jd_ang, ap_pos, ap_rot, ac_pos, ac_rot = out
+    return (Transform(pos=j_pos, rot=j_rot), Motion(vel=jd_vel, ang=jd_ang),
+            Transform(pos=ap_pos, rot=ap_rot), Transform(pos=ac_pos, rot=ac_rot))
+
+
+def _compose(pos, rot, t_pos, t_rot):
+    """`Transform(pos, rot).do(Transform(t_pos, t_rot))`, batched."""
+    return pos + _rotate(t_pos, rot), _qmul(rot, t_rot)
+
+
+def _world_to_joint_forward(parents, pos, rot, vel, ang, lt_pos, lt_rot, lj_pos, lj_rot):
+    idx = jnp.array(parents)
+
+    def parent(a, world):  # brax: concatenate the world's row, take with mode='wrap'
+        row = jnp.broadcast_to(jnp.array(world, a.dtype), (1, a.shape[-1]))
+        return jnp.take(jnp.concatenate([a, row]), idx, axis=0, mode="wrap")
+    xp_pos, xp_rot = parent(pos, [0.0] * 3), parent(rot, [1.0, 0.0, 0.0, 0.0])
+    xdp_vel, xdp_ang = parent(vel, [0.0] * 3), parent(ang, [0.0] * 3)
+    t1_pos, t1_rot = _compose(xp_pos, xp_rot, lt_pos, lt_rot)
+    ap_pos, ap_rot = _compose(t1_pos, t1_rot, lj_pos, lj_rot)
+    ac_pos, ac_rot = _compose(pos, rot, lj_pos, lj_rot)
+    cap = math.quat_inv(ap_rot)
+    d = ac_pos - ap_pos
+    p = xp_pos - ap_pos
+    e_v = vel - (xdp_vel - jnp.cross(p, xdp_ang))
+    e_w = ang - xdp_ang
+    out = (_rotate(d, cap), _qmul(cap, ac_rot), _rotate(e_v, cap), _rotate(e_w, cap),
+           ap_pos, ap_rot, ac_pos, ac_rot)
+    return out, (rot, xp_rot, t1_rot, ap_rot, ac_rot, d, p, e_v, e_w, xdp_ang, lt_pos,
+                 lt_rot, lj_pos, lj_rot)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _world_to_joint(parents, pos, rot, vel, ang, lt_pos, lt_rot, lj_pos, lj_rot):
+    return _world_to_joint_forward(parents, pos, rot, vel, ang, lt_pos, lt_rot, lj_pos,
+                                   lj_rot)[0]
+
+
+def _compose_bwd(rot, t_pos, t_rot, g_pos, g_rot):
+    """The VJP of `_compose(pos, rot, t_pos, t_rot)` in (rot, t_pos, t_rot); in pos it is
+    g_pos."""
+    inv = math.quat_inv(rot)
+    return (_rotate_vjp_quat(t_pos, rot, g_pos) + _qmul(g_rot, math.quat_inv(t_rot)),
+            _rotate(g_pos, inv), _qmul(inv, g_rot))
+
+
+def _world_to_joint_bwd(parents, res, g):
+    rot, xp_rot, t1_rot, ap_rot, ac_rot, d, p, e_v, e_w, xdp_ang, lt_pos, lt_rot, lj_pos, \
+        lj_rot = res
+    gj_pos, gj_rot, gjd_vel, gjd_ang, g_ap_pos, g_ap_rot, g_ac_pos, g_ac_rot = g
+    cap = math.quat_inv(ap_rot)
+    # j.pos = R(cap) d, j.rot = cap * a_c.rot, jd = R(cap) e: R(cap)^T = R(a_p.rot)
+    g_d, g_ev, g_ew = _rotate(gj_pos, ap_rot), _rotate(gjd_vel, ap_rot), _rotate(gjd_ang, ap_rot)
+    g_cap = (_rotate_vjp_quat(d, cap, gj_pos) + _rotate_vjp_quat(e_v, cap, gjd_vel)
+             + _rotate_vjp_quat(e_w, cap, gjd_ang) + _qmul(gj_rot, math.quat_inv(ac_rot)))
+    g_ac_rot = g_ac_rot + _qmul(ap_rot, gj_rot)
+    g_ap_rot = g_ap_rot + math.quat_inv(g_cap)
+    # d = a_c.pos - a_p.pos; e_v = vel - (xd_p.vel - p x xd_p.ang), p = x_p.pos - a_p.pos
+    g_p = jnp.cross(xdp_ang, g_ev)
+    g_ac_pos = g_ac_pos + g_d
+    g_ap_pos = g_ap_pos - g_d - g_p
+    g_xdp_ang = jnp.cross(g_ev, p) - g_ew
+    # a_c = x . link.joint; a_p = t1 . link.joint; t1 = x_p . link.transform
+    g_rot, g_lj_pos, g_lj_rot = _compose_bwd(rot, lj_pos, lj_rot, g_ac_pos, g_ac_rot)
+    g_t1_rot, g_lj_pos_p, g_lj_rot_p = _compose_bwd(t1_rot, lj_pos, lj_rot, g_ap_pos, g_ap_rot)
+    g_xp_rot, g_lt_pos, g_lt_rot = _compose_bwd(xp_rot, lt_pos, lt_rot, g_ap_pos, g_t1_rot)
+    # the gathers from the parents: each link's cotangent flows into its parent's row
+    to_parents = functools.partial(_to_parents, parents)
+    return (g_ac_pos + to_parents(g_p + g_ap_pos), g_rot + to_parents(g_xp_rot),
+            g_ev - to_parents(g_ev), g_ew + to_parents(g_xdp_ang), g_lt_pos, g_lt_rot,
+            g_lj_pos + g_lj_pos_p, g_lj_rot + g_lj_rot_p)
+
+
+_world_to_joint.defvjp(_world_to_joint_forward, _world_to_joint_bwd)
+
+
+def joints_resolve(sys, state, tau: jax.Array) -> Force:
+    """`brax.spring.joints.resolve(sys, state, tau)`: the joints' constraint forces in joint
+    frames by brax's own per-type functions (XLA's reverse mode), then moved to the links'
+    centres of mass in world frame with a hand-written VJP (`_joint_to_link_forces`)."""
+
+    def j_fn(typ, link, j, jd, dof, tau):  # brax's, as in joints.resolve
+        reshape_fn = lambda x: x.reshape((j.pos.shape[0], -1) + x.shape[1:])  # noqa: E731
+        tau, dof = jax.tree.map(reshape_fn, (tau, dof))
+        j_fn_map = {"f": joints._free, "1": one_dof, "2": joints._two_dof,
+                    "3": joints._three_dof}
+        return jax.vmap(j_fn_map[typ])(link, j, jd, dof, tau)
+    jf = scan.link_types(sys, j_fn, "llldd", "l", sys.link, state.j, state.jd, sys.dof, tau)
+    ang, vel = _joint_to_link_forces(tuple(sys.link_parents), jf.ang, jf.vel,
+                                     state.a_p.rot, state.a_p.pos, state.a_c.pos,
+                                     state.x_i.pos)
+    return Force(ang=ang, vel=vel)
+
+
+def one_dof(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
+    """`brax.spring.joints._one_dof(link, j, jd, dof, tau)`, one 1-dof joint's constraint
+    force in its joint frame, with a hand-written VJP in the joint's state (j, jd) and
+    force tau; the system's fields (link springs, dof axes and limits) get XLA's reverse
+    mode of brax's function, which XLA drops where they are constants, as in ILD."""
+    return _one_dof(link, dof, j.pos, j.rot, jd.vel, jd.ang, tau)
+
+
+def _one_dof_forward(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau):
+    out = joints._one_dof(link, Transform(pos=j_pos, rot=j_rot),
+                          Motion(vel=jd_vel, ang=jd_ang), dof, tau)
+    frame, _ = kinematics.link_to_joint_frame(dof.motion)
+    fa, fv0 = frame.ang, frame.vel[0]
+    is_t, is_r = dof.motion.vel.any(), dof.motion.ang.any()
+    # the joint angle psi (kinematics.axis_angle_ang): the signed angle about fa[0] from
+    # fa[1] to the line of nodes lon = m / |m|, m = R(j.rot) fa[2] x fa[0]
+    m = jnp.cross(_rotate(fa[2], j_rot), fa[0])
+    lon, norm = math.normalize(m)
+    y, x = jnp.dot(jnp.cross(fa[1], lon), fa[0]), jnp.dot(fa[1], lon)
+    psi = jnp.arctan2(y, x)
+    if dof.limit is None:
+        out_psi = out_xp = jnp.zeros(1, psi.dtype)
+    else:
+        lo, hi = dof.limit
+        xp = jnp.dot(j_pos, fv0)
+        out_psi, out_xp = (psi < lo) | (psi > hi), (xp < lo) | (xp > hi)
+    res = (link, dof, j_pos, j_rot, jd_vel, jd_ang, tau, fa, fv0, is_t, is_r, lon, norm,
+           jnp.allclose(m, 0.0), x, y, out_psi, out_xp)
+    return out, res
+
+
+@jax.custom_vjp
+def _one_dof(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau):
+    return _one_dof_forward(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau)[0]
+
+
+def _one_dof_bwd(res, g):
+    """vel = P(-k_s j.pos) + tau fv0 t + P(-k_vd jd.vel) - k_ls fv0 t dvel(j.pos . fv0),
+    ang = -k_s (fa0 x R fa0) - k_s t (1 - r) (fa1 x R fa1) + tau fa0 r - k_ad jd.ang
+          - k_ls (1 - t) fa0 dang(psi),
+    with P(v) = v - t (fv0 . v) fv0, t and r whether the dof translates and rotates, R the
+    rotation by j.rot and dvel, dang the distances past the limits (slope 1 outside)."""
+    (link, dof, j_pos, j_rot, jd_vel, jd_ang, tau, fa, fv0, is_t, is_r, lon, norm, zero_m,
+     x, y, out_psi, out_xp) = res
+    g_ang, g_vel = g.ang, g.vel
+    k_s, k_ls = link.constraint_stiffness, link.constraint_limit_stiffness
+    t, r = is_t.astype(g_vel.dtype), is_r.astype(g_vel.dtype)
+    proj = g_vel - t * jnp.dot(fv0, g_vel) * fv0
+    g_j_pos = -k_s * proj - (k_ls * t * jnp.dot(fv0, g_vel) * out_xp) * fv0
+    g_tau = jnp.reshape(t * jnp.dot(fv0, g_vel) + r * jnp.dot(fa[0], g_ang), tau.shape)
+    g_c0 = -k_s * jnp.cross(g_ang, fa[0])
+    g_c1 = -k_s * t * (1 - r) * jnp.cross(g_ang, fa[1])
+    g_psi = -k_ls * (1 - t) * jnp.dot(fa[0], g_ang) * out_psi
+    g_lon = jnp.where(out_psi, g_psi, 0.0) * (x * jnp.cross(fa[0], fa[1]) - y * fa[1]) / (
+        x * x + y * y)  # lon is a unit vector normal to fa0: x^2 + y^2 = 1 but where m = 0
+    g_m = jnp.where(zero_m, g_lon / 1e-6,
+                    (g_lon - lon * jnp.dot(lon, g_lon)) / jnp.where(zero_m, 1.0, norm))
+    g_c2 = jnp.cross(fa[0], g_m)
+    g_j_rot = (_rotate_vjp_quat(fa[0], j_rot, g_c0) + _rotate_vjp_quat(fa[1], j_rot, g_c1)
+               + _rotate_vjp_quat(fa[2], j_rot, g_c2))
+    _, pull_sys = jax.vjp(lambda lk, df: joints._one_dof(
+        lk, Transform(pos=j_pos, rot=j_rot), Motion(vel=jd_vel, ang=jd_ang), df, tau),
+        link, dof)
+    g_link, g_dof = pull_sys(g)
+    return (g_link, g_dof, g_j_pos, g_j_rot, -link.constraint_vel_damping * proj,
+            -link.constraint_ang_damping * g_ang, g_tau)
+
+
+_one_dof.defvjp(_one_dof_forward, _one_dof_bwd)
+
+
+def _joint_to_link_forces_forward(parents, jf_ang, jf_vel, ap_rot, ap_pos, ac_pos, xi_pos):
+    """Per link: the joint force jf rotated to world frame by a_p.rot, applied at the
+    link's centre of mass (offset a_c.pos - x_i.pos) and, opposite, at its parent's
+    (offset a_p.pos - x_i[parent].pos), summed into the parent (brax's resolve's tail)."""
+    vel = _rotate(jf_vel, ap_rot)
+    ang = _rotate(jf_ang, ap_rot)
+    pc = ac_pos - xi_pos
+    pp = ap_pos - jnp.take(xi_pos, jnp.array(parents), axis=0, mode="wrap")
+    out = (ang + jnp.cross(pc, vel) - _to_parents(parents, ang + jnp.cross(pp, vel)),
+           vel - _to_parents(parents, vel))
+    return out, (jf_ang, jf_vel, ap_rot, vel, pc, pp)
+
+
+def _to_parents(parents, x):
+    """Each link's row summed into its parent's (brax's segment_sum; a root's, parent -1,
+    goes nowhere): the transpose of `_from_parents`."""
+    return jax.ops.segment_sum(x, jnp.array(parents), len(parents))
+
+
+def _from_parents(parents, x):
+    """Each link's parent's row (zero for a root): the transpose of `_to_parents`."""
+    zero = jnp.zeros((1,) + x.shape[1:], x.dtype)
+    return jnp.take(jnp.concatenate([x, zero]), jnp.array(parents), axis=0, mode="wrap")
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _joint_to_link_forces(parents, jf_ang, jf_vel, ap_rot, ap_pos, ac_pos, xi_pos):
+    return _joint_to_link_forces_forward(parents, jf_ang, jf_vel, ap_rot, ap_pos, ac_pos,
+                                         xi_pos)[0]
+
+
+def _joint_to_link_forces_bwd(parents, res, g):
+    jf_ang, jf_vel, ap_rot, vel, pc, pp = res
+    g_ang, g_vel = g
+    g_fp = -_from_parents(parents, g_ang)  # the parent's share, ang + pp x vel, negated
+    g_ang_w = g_ang + g_fp
+    g_vel_w = g_vel - _from_parents(parents, g_vel) + jnp.cross(g_ang, pc) + jnp.cross(g_fp, pp)
+    g_pc, g_pp = jnp.cross(vel, g_ang), jnp.cross(vel, g_fp)
+    inv = math.quat_inv(ap_rot)
+    return (_rotate(g_ang_w, inv), _rotate(g_vel_w, inv),
+            _rotate_vjp_quat(jf_ang, ap_rot, g_ang_w) + _rotate_vjp_quat(jf_vel, ap_rot, g_vel_w),
+            g_pp, g_pc, -g_pc - _to_parents(parents, g_pp))
+
+
+_joint_to_link_forces.defvjp(_joint_to_link_forces_forward, _joint_to_link_forces_bwd)
+
+
+def collisions_resolve(sys, state) -> Motion:
+    """`brax.spring.collisions.resolve(sys, state)`: each contact's impulse by brax's own
+    formulas (XLA's reverse mode; `_impulse` is brax's closure, copied), then the impulses
+    moved to the links' centres of mass, averaged over each link's active contacts and
+    turned into delta-velocities with a hand-written VJP (`_impulses_to_links`)."""
+    c = contact.get(sys, state.x)
+    if c is None:
+        return Motion.zero((sys.num_links(),))
+    link_idx = jnp.array(c.link_idx).T
+    x_i, xd_i = state.x_i.take(link_idx), state.xd_i.take(link_idx)
+    i_inv = state.i_inv.take(link_idx) * (link_idx > -1)
+    i_mass = 1 / state.mass.take(link_idx) * (link_idx > -1)
+    p, is_contact = jax.vmap(functools.partial(_impulse, sys))(c, link_idx, x_i, xd_i, i_inv,
+                                                               i_mass)
+    ang, vel = _impulses_to_links(p.ang, p.vel, jax.lax.stop_gradient(is_contact), c.pos,
+                                  jnp.concatenate(c.link_idx), state.x_i.pos, state.mass,
+                                  state.i_inv)
+    return Motion(ang=ang, vel=vel)
+
+
+def _impulse(sys, c, link_idx, x_i, xd_i, i_inv, i_mass):
+    """brax.spring.collisions.resolve's `impulse` (brax 0.14.2), unchanged: one contact's
+    velocity-level impulse with Baumgarte stabilization and friction, and whether it
+    applies."""
+    rel_pos = c.pos - x_i.pos
+    rel_vel = xd_i.vel + jax.vmap(jnp.cross)(xd_i.ang, rel_pos)
+    rel_vel *= (link_idx > -1).reshape(-1, 1)
+    contact_vel = rel_vel[0] - rel_vel[1]
+    normal_vel = jnp.dot(-c.frame[0], contact_vel)
+    temp = jax.vmap(jnp.dot)(i_inv, jnp.cross(rel_pos, -c.frame[0]))
+    ang = jnp.dot(-c.frame[0], jnp.sum(jnp.cross(temp, rel_pos), axis=0))
+    baumgarte_vel = sys.baumgarte_erp / sys.opt.timestep * c.dist
+    impulse = (-1.0 * (1.0 + c.elasticity) * normal_vel - baumgarte_vel) / (
+        i_mass[0] + i_mass[1] + ang)
+    impulse_vec = impulse * -c.frame[0]
+    vel_d = contact_vel + normal_vel * c.frame[0]
+    dir_d = vel_d / (1e-6 + math.safe_norm(vel_d))
+    temp = jax.vmap(jnp.dot)(i_inv, jnp.cross(rel_pos, dir_d))
+    ang_d = jnp.dot(dir_d, jnp.sum(jnp.cross(temp, rel_pos), axis=0))
+    impulse_d = math.safe_norm(vel_d) / (i_mass[0] + i_mass[1] + ang_d)
+    impulse_d = jnp.minimum(impulse_d, c.friction[0] * impulse)
+    impulse_d_vec = -1.0 * impulse_d * dir_d
+    apply_n = (c.dist < 0.0) & (normal_vel < 0) & (impulse > 0.0)
+    apply_d = apply_n * (math.safe_norm(vel_d) > 1e-3)
+    f = Force.create(vel=impulse_vec * apply_n + impulse_d_vec * apply_d)
+    return f, jnp.array(apply_n, dtype=jnp.float32)
+
+
+def _impulses_to_links_forward(p_ang, p_vel, is_contact, c_pos, idx, xi_pos, mass, i_inv):
+    """brax's resolve's tail: contact k's impulse p_k acts on its first link and -p_k on its
+    second (index -1: the world, dropped), at the contact point relative to the link's
+    centre of mass; each link's sum is divided by its number of active contacts (+1e-8),
+    then by its mass (linear) and through its inverse inertia (angular)."""
+    n_links = xi_pos.shape[0]
+    vel2 = jnp.concatenate([p_vel, -p_vel])
+    ang2 = jnp.concatenate([p_ang, -p_ang])
+    r = jnp.tile(c_pos, (2, 1)) - jnp.take(xi_pos, idx, axis=0, mode="wrap")
+    total_vel = jax.ops.segment_sum(vel2, idx, n_links)
+    total_ang = jax.ops.segment_sum(ang2 + jnp.cross(r, vel2), idx, n_links)
+    den = jax.ops.segment_sum(jnp.tile(is_contact, 2), idx, n_links).reshape(-1, 1) + 1e-8
+    xa, xv = total_ang / den, total_vel / den
+    out = (jax.vmap(lambda a, b: a @ b)(i_inv, xa), jax.vmap(lambda a, b: a / b)(xv, mass))
+    return out, (vel2, r, idx, den, xa, xv, mass, i_inv)
+
+
+@jax.custom_vjp
+def _impulses_to_links(p_ang, p_vel, is_contact, c_pos, idx, xi_pos, mass, i_inv):
+    return _impulses_to_links_forward(p_ang, p_vel, is_contact, c_pos, idx, xi_pos, mass,
+                                      i_inv)[0]
+
+
+def _impulses_to_links_bwd(res, g):
+    vel2, r, idx, den, xa, xv, mass, i_inv = res
+    g_ang, g_vel = g
+    n = vel2.shape[0] // 2
+    g_xa = jnp.einsum("lij,li->lj", i_inv, g_ang)
+    g_xv = g_vel / mass[:, None]
+
+    def from_links(x):  # the transpose of segment_sum: each contact side's link's row
+        zero = jnp.zeros((1,) + x.shape[1:], x.dtype)
+        return jnp.take(jnp.concatenate([x, zero]), idx, axis=0, mode="wrap")
+    g_a = from_links(g_xa / den)  # the cotangent of ang2 + r x vel2
+    g_vel2 = from_links(g_xv / den) + jnp.cross(g_a, r)
+    g_r = jnp.cross(vel2, g_a)
+    return (g_a[:n] - g_a[n:], g_vel2[:n] - g_vel2[n:], None, g_r[:n] + g_r[n:], None,
+            -jax.ops.segment_sum(g_r, idx, mass.shape[0]), -jnp.sum(g_xv * xv, -1) / mass,
+            g_ang[:, :, None] * xa[:, None, :])
+
+
+_impulses_to_links.defvjp(_impulses_to_links_forward, _impulses_to_links_bwd)
+
+
 def step(sys, state, act, debug: bool = False):
-    """`brax.spring.pipeline.step(sys, state, act)` (brax 0.14.2), its inverse inertia, its
-    integration and its conversion to world frames through `inv_inertia`, `integrate` and
-    `to_world` above; everything else is brax's own functions in brax's order."""
+    """`brax.spring.pipeline.step(sys, state, act)` (brax 0.14.2) with the seven pieces above
+    (`inv_inertia`, `joints_resolve` with `one_dof`, `collisions_resolve`, `integrate`,
+    `to_world`, `world_to_joint`); everything else is brax's own functions in brax's
+    order."""
     state = state.replace(i_inv=inv_inertia(sys, state.x))
     tau = actuator.to_tau(sys, act, state.q, state.qd)
     xdd_i = Motion.create(vel=sys.gravity)
-    xf_i = joints.resolve(sys, state, tau)
+    xf_i = joints_resolve(sys, state, tau)
     if sys.enable_fluid:
         inertia = sys.link.inertia.i ** (1 - sys.spring_inertia_scale)
         xf_i += fluid.force(sys, state.x, state.xd, state.mass, inertia)
@@ -228,11 +564,11 @@ def step(sys, state, act, debug: bool = False):
         vel=jax.vmap(lambda x, y: x / y)(xf_i.vel, state.mass),
     )
     state = state.replace(xd_i=state.xd_i + xdd_i * sys.opt.timestep)
-    xdv_i = collisions.resolve(sys, state)
+    xdv_i = collisions_resolve(sys, state)
     x_i, xd_i = integrate(sys, state.x_i, state.xd_i, xdv_i)
     x, xd = to_world(sys, x_i, xd_i)
     state = state.replace(x=x, xd=xd, x_i=x_i, xd_i=xd_i)
-    j, jd, a_p, a_c = kinematics.world_to_joint(sys, x, xd)
+    j, jd, a_p, a_c = world_to_joint(sys, x, xd)
     q, qd = kinematics.inverse(sys, j, jd)
     return state.replace(q=q, qd=qd, a_p=a_p, a_c=a_c, j=j, jd=jd,
                          contact=contact.get(sys, x) if debug else None)

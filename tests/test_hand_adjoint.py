@@ -1,26 +1,35 @@
-"""`hand_adjoint`: brax's spring substep with the VJPs of three of its pieces (inverse inertia,
-integration, conversion to link frames) written by hand (`tasks.spring_adjoint`). The same
-values and the same VJPs as XLA's reverse mode of brax's code, piece by piece and (slow) for
-a whole control step, and clear refusals where it does not fit."""
+"""`hand_adjoint`: brax's spring substep with the VJPs of four of its pieces (inverse
+inertia, integration, conversion to link frames, conversion to joint frames) written by hand
+(`tasks.spring_adjoint`). The same values and the same VJPs as XLA's reverse mode of brax's
+code, piece by piece and (slow) for a whole control step, and clear refusals where it does
+not fit."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from brax import com
-from brax.spring import integrator
+from brax import com, kinematics
+from brax.base import Motion, Transform
+from brax.spring import collisions, integrator, joints
 
 from methods.ild.config import ILDConfig
 from methods.ild.train import rollout_physics
 from tasks import make_task
 from tasks.core import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
-from tasks.spring_adjoint import integrate, inv_inertia, to_world
+from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, joints_resolve,
+                                  one_dof, to_world, world_to_joint)
 from tests.test_lean_substeps import _step_and_vjp
 
 
 def _hopper_states(batch=8, steps=10):
     """`batch` hopper envs `steps` control steps after reset under a varying action (the
     foot on the ground), and that action."""
-    task = make_task("hopper")
+    return _states("hopper", batch, steps)
+
+
+def _states(name, batch=8, steps=10):
+    """`batch` envs of task `name` `steps` control steps after reset under a varying action,
+    and that action."""
+    task = make_task(name)
     env = task.env
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), batch))
     act = 0.9 * jnp.sin(jnp.arange(batch * task.action_size, dtype=jnp.float32)
@@ -29,6 +38,29 @@ def _hopper_states(batch=8, steps=10):
     for _ in range(steps):
         s = step(s, act)
     return task, s.pipeline_state, act
+
+
+def _same_values_and_vjp(want_fn, got_fn, *args):
+    """`got_fn`'s values equal `want_fn`'s bit for bit and its VJP, for a sine cotangent,
+    equals XLA's reverse mode of `want_fn` to float32 round-off (rtol 1e-5, atol 1e-6 of
+    each leaf's largest entry); returns XLA's cotangent leaves (empty ones included)."""
+    want, want_pull = jax.vjp(want_fn, *args)
+    got, got_pull = jax.vjp(got_fn, *args)
+    for w, g in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+        np.testing.assert_array_equal(g, w)
+    ct = jax.tree.map(lambda v: jnp.sin(7.0 * jnp.arange(v.size, dtype=v.dtype)
+                                        ).reshape(v.shape), want)
+    want_g, got_g = jax.tree.leaves(want_pull(ct)), jax.tree.leaves(got_pull(ct))
+    assert len(want_g) == len(got_g)
+    for w, g in zip(want_g, got_g):
+        scale = float(jnp.max(jnp.abs(w))) if w.size else 0.0
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6 * max(scale, 1.0))
+    return want_g
+
+
+def _reached(cotangents) -> int:
+    """How many cotangent leaves are not all zero."""
+    return sum(1 for w in cotangents if w.size and float(jnp.max(jnp.abs(w))) > 0)
 
 
 def test_hand_integrate_is_braxs_integrate_and_its_vjp():
@@ -122,10 +154,130 @@ def test_hand_inv_inertia_is_braxs_and_its_vjp():
     assert float(jnp.max(jnp.abs(want_g[2]))) == 0.0
 
 
+@pytest.mark.parametrize("name", ["hopper", "ant"])
+def test_hand_world_to_joint_is_braxs_and_its_vjp(name):
+    """`world_to_joint` on 8 states mid-motion (hopper: a chain; ant: a torso with four
+    two-link legs, so one parent gathers four children's cotangents): its values equal
+    brax.kinematics.world_to_joint bit for bit, and its hand-written VJP equals XLA's reverse
+    mode of brax's in the link frames and motions and in the system's link and joint frames
+    (`link.transform`, `link.joint`, through `tree_replace`)."""
+    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    sys_ = task.env.unwrapped.sys
+    fields = ("link.transform.pos", "link.transform.rot", "link.joint.pos", "link.joint.rot")
+
+    def through(fn):
+        def f(*a):
+            s = sys_.tree_replace(dict(zip(fields, a[:4])))
+            return jax.vmap(lambda x, xd: fn(s, x, xd))(*a[4:])
+        return f
+    args = (sys_.link.transform.pos, sys_.link.transform.rot, sys_.link.joint.pos,
+            sys_.link.joint.rot, ps.x, ps.xd)
+    want_g = _same_values_and_vjp(through(kinematics.world_to_joint), through(world_to_joint),
+                                  *args)
+    assert len(want_g) == 8  # four system fields, pos, rot, ang, vel
+    assert min(float(jnp.max(jnp.abs(w))) for w in want_g) > 1.0
+
+
+@pytest.mark.parametrize("name", ["hopper", "humanoid"])
+def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
+    """`joints_resolve` on 8 states mid-motion (hopper: hinges in a chain; humanoid: 1-, 2-
+    and 3-dof joints in a tree) under joint forces tau, with the joint limits narrowed to
+    0.2 rad about their middles so that joints are past them at both ends: its values equal
+    brax.spring.joints.resolve bit for bit and its VJP (the 1-dof joints' forces by hand,
+    the 2- and 3-dof ones' through XLA, their move to the links' centres of mass by hand)
+    equals XLA's reverse mode of brax's in every state field it reads (joint frames and
+    motions, a_p, a_c, x_i), tau and the system's joint springs, limits and axes (a limit's
+    cotangent is non-zero only where a joint is past it: both ends are reached)."""
+    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    sys_ = task.env.unwrapped.sys
+    tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)
+    fields = ("link.constraint_stiffness", "link.constraint_limit_stiffness", "dof.limit",
+              "dof.motion.ang")
+    lo, hi = sys_.dof.limit
+    limited = jnp.isfinite(lo) & jnp.isfinite(hi)
+    mid = jnp.where(limited, (lo + hi) / 2, 0.0)
+    narrowed = (jnp.where(limited, mid - 0.1, lo), jnp.where(limited, mid + 0.1, hi))
+    sys_args = (sys_.link.constraint_stiffness, sys_.link.constraint_limit_stiffness,
+                narrowed, sys_.dof.motion.ang)
+
+    def through(fn):
+        def f(*a):
+            s = sys_.tree_replace(dict(zip(fields, a[:4])))
+            return jax.vmap(lambda p, t: fn(s, p, t))(*a[4:])
+        return f
+    want_g = _same_values_and_vjp(through(joints.resolve), through(joints_resolve), *sys_args,
+                                  ps, tau)
+    # five system fields (both limits); j, jd, a_p (pos, rot), a_c.pos, x_i.pos and tau
+    assert _reached(want_g) == 14
+
+
+@pytest.mark.parametrize("slide", [False, True], ids=["hinge", "slide"])
+def test_hand_one_dof_is_braxs_for_hinges_and_slides(slide):
+    """`one_dof` for 16 joints in random frames and motions, each a hinge or (the tasks have
+    none, so its terms are checked here) a slide along a tilted axis, limits at +/-0.1 so
+    that about half are past one: its values equal brax.spring.joints._one_dof bit for bit
+    and its hand-written VJP equals XLA's reverse mode of brax's in j, jd, tau and the
+    limits."""
+    sys_ = make_task("hopper").env.unwrapped.sys
+    n = 16
+    link = jax.tree.map(lambda v: jnp.stack([v[4]] * n), sys_.link)  # the leg's springs
+    axis = jnp.array([[0.3, -0.4, 0.866]])
+    motion = (Motion(ang=jnp.zeros((1, 3)), vel=axis) if slide
+              else Motion(ang=axis, vel=jnp.zeros((1, 3))))
+    keys = jax.random.split(jax.random.PRNGKey(5), 5)
+    rot = jax.random.normal(keys[0], (n, 4))
+    j = Transform(pos=0.2 * jax.random.normal(keys[1], (n, 3)),
+                  rot=rot / jnp.linalg.norm(rot, axis=-1, keepdims=True))
+    jd = Motion(ang=jax.random.normal(keys[2], (n, 3)), vel=jax.random.normal(keys[3], (n, 3)))
+    tau = 30.0 * jax.random.normal(keys[4], (n, 1))
+
+    def through(fn):
+        def f(lo, hi, j, jd, tau):
+            dof = jax.tree.map(lambda v: jnp.stack([v[3:4]] * n), sys_.dof)  # the thigh's
+            dof = dof.replace(motion=jax.tree.map(lambda v: jnp.stack([v] * n), motion),
+                              limit=(jnp.full((n, 1), lo), jnp.full((n, 1), hi)))
+            return jax.vmap(fn)(link, j, jd, dof, tau)
+        return f
+    args = (jnp.float32(-0.1), jnp.float32(0.1), j, jd, tau)
+    want_g = _same_values_and_vjp(through(joints._one_dof), through(one_dof), *args)
+    assert len(want_g) == 7  # lo, hi, j (pos, rot), jd (ang, vel), tau
+    assert min(float(jnp.max(jnp.abs(w))) for w in want_g) > 1e-2
+
+
+@pytest.mark.parametrize("name", ["hopper", "ant"])
+def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
+    """`collisions_resolve` on 8 states mid-motion pushed 0.1 down into the floor and moving
+    down at 1 m/s (so every env has contacts whose impulses apply), with masses and inverse
+    inertias that differ between links and axes (and are not symmetric): its values equal
+    brax.spring.collisions.resolve bit for bit and its VJP (brax's impulses through XLA,
+    their move to the links' centres of mass, averaging and conversion to delta-velocities by
+    hand) equals XLA's reverse mode of brax's in every state field it reads (x, x_i, xd_i,
+    the inverse inertias and masses)."""
+    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    sys_ = task.env.unwrapped.sys
+    down = jnp.array([0.0, 0.0, 0.1])
+    n_links = ps.mass.shape[-1]  # the spring tasks' masses are 1 and inverse inertias I:
+    scale = jnp.linspace(0.5, 2.0, n_links)  # make them tell the links apart
+    skew = 0.2 * jnp.roll(jnp.eye(3), 1, axis=1)  # not symmetric: a transpose shows
+    ps = ps.replace(mass=ps.mass * scale,
+                    i_inv=(ps.i_inv * jnp.array([0.5, 1.0, 2.0]) + skew) / scale[:, None, None],
+                    x=ps.x.replace(pos=ps.x.pos - down),
+                    x_i=ps.x_i.replace(pos=ps.x_i.pos - down),
+                    xd_i=ps.xd_i.replace(vel=ps.xd_i.vel - 10.0 * down
+                                         + 0.5 * jnp.sin(ps.xd_i.vel)))
+
+    def through(fn):
+        return jax.vmap(lambda p: fn(sys_, p))
+    assert bool(jnp.all(jnp.any(through(collisions.resolve)(ps).vel != 0.0, axis=(1, 2))))
+    want_g = _same_values_and_vjp(through(collisions.resolve), through(collisions_resolve), ps)
+    assert _reached(want_g) == 7  # x (pos, rot), x_i.pos, xd_i (ang, vel), i_inv, mass
+
+
 def test_ild_trains_through_the_hand_written_step_where_asked():
-    """rollout_physics with `hand_adjoint` runs three custom VJPs (inverse inertia's,
-    integration's, to-world's) in every substep of hopper's control step, lean or not;
-    without it, none (traced, not compiled)."""
+    """rollout_physics with `hand_adjoint` runs seven custom VJPs (inverse inertia's, the
+    1-dof joints' forces', joint forces to links', contact impulses to links',
+    integration's, to-world's, world-to-joint's) in every substep of hopper's control step,
+    lean or not; without it, none (traced, not compiled)."""
     task, ps, act = _hopper_states(batch=1, steps=0)
     ps1, a1 = jax.tree.map(lambda v: v[0], ps), act[0]
 
@@ -135,9 +287,9 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     n_frames = task.env.unwrapped._n_frames
     assert n_frames > 1
     assert custom_vjps(ILDConfig(lean_substeps=True)) == 0
-    # three per substep body: the scan's and the last substep's (lean)
-    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 6
-    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 3
+    # seven per substep body: the scan's and the last substep's (lean)
+    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 14
+    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 7
 
 
 @pytest.mark.slow  # two compilations of a control step's VJP: ~2 minutes

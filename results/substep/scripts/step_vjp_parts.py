@@ -6,7 +6,7 @@ Forward and VJP (forward + backward, cotangent of ones) of each function brax's 
 generalized pipeline step calls, vmapped over B envs and jitted alone, on states 10 control
 steps in (contacts active): microseconds per call (min over 3 rounds of 100 calls) and
 VJP / forward, then one whole control step (all its substeps) the same way; on spring tasks
-also the pieces `tasks.spring_adjoint` writes with a hand-written VJP (session 47).
+also the pieces `tasks.spring_adjoint` writes with a hand-written VJP (sessions 47-48).
 results/JOURNAL.md: spring (session 28), no piece dominates and none is far past 3x;
 generalized (session 29), where swimmer's and acrobot's step goes.
 """
@@ -41,13 +41,19 @@ def spring_parts(sys_) -> dict:
 
 def hand_parts(sys_) -> dict:
     """The pieces `tasks.spring_adjoint` writes with a hand-written VJP (`hand_adjoint`,
-    session 47), on the same inputs as their brax rows in `spring_parts`."""
+    sessions 47-48), on the same inputs as their brax rows in `spring_parts`."""
     from tasks import spring_adjoint as sa
     return {
         "inv_inertia (hand VJP)": lambda p, u: sa.inv_inertia(sys_, p.x),
+        "joints.resolve (hand VJP of its tail)": lambda p, u: sa.joints_resolve(
+            sys_, p, actuator.to_tau(sys_, u, p.q, p.qd)),
+        "collisions.resolve (hand VJP of its tail)": lambda p, u: sa.collisions_resolve(sys_,
+                                                                                       p),
         "integrator.integrate (hand VJP)": lambda p, u: sa.integrate(sys_, p.x_i, p.xd_i,
                                                                      p.xd_i * 0.01),
         "com.to_world (hand VJP)": lambda p, u: sa.to_world(sys_, p.x_i, p.xd_i),
+        "kinematics.world_to_joint (hand VJP)": lambda p, u: sa.world_to_joint(sys_, p.x,
+                                                                               p.xd),
         "one whole substep (hand_adjoint)": lambda p, u: sa.step(sys_, p, u),
     }
 
