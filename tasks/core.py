@@ -262,7 +262,7 @@ def hand_adjoint_refusal(task: Task) -> str | None:
 
 def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False) -> Task:
     """A fresh copy of brax spring task `task` whose substeps run `tasks.spring_adjoint.step`:
-    brax's spring substep with seven pieces' VJPs written by hand (the same values and
+    brax's spring substep with six pieces' VJPs written by hand (the same values and
     gradient to float32 round-off: tests/test_hand_adjoint.py). `remat` and `lean` as
     `with_substep_remat` and `with_lean_substeps`. Errors for a task it does not fit."""
     why = hand_adjoint_refusal(task)

@@ -1,14 +1,10 @@
 """brax's spring substep with hand-written VJPs for some of its pieces (`hand_adjoint`).
 
 `step` computes what `brax.spring.pipeline.step` computes, in brax's order and with brax's
-own functions, except seven pieces written here with their VJP by hand (`jax.custom_vjp`):
+own functions, except six pieces written here with their VJP by hand (`jax.custom_vjp`):
 - the inverse inertia in world frame (`inv_inertia`, for `brax.com.inv_inertia`);
-- the constraint force of a 1-dof (hinge or slide) joint in its joint frame (`one_dof`, for
-  `brax.spring.joints._one_dof`: the hand-written VJP is in the joint's state and force;
-  the system's fields get XLA's reverse mode of brax's function);
 - the joint forces' move from joint frames to the links' centres of mass, the tail of
-  `brax.spring.joints.resolve` (`joints_resolve`; 2- and 3-dof joints' forces stay
-  brax's);
+  `brax.spring.joints.resolve` (`joints_resolve`; the per-joint-type forces stay brax's);
 - the contact impulses' move to the links' centres of mass, their averaging and conversion
   to delta-velocities, the tail of `brax.spring.collisions.resolve` (`collisions_resolve`;
   the contacts and each contact's impulse stay brax's);
@@ -30,11 +26,13 @@ substep scan than XLA's reverse mode of the same lines. Jitted alone they gain l
 nothing (`python results/substep/scripts/step_vjp_parts.py hopper`); inside the update they
 add up. Paired on one core (`python -m methods.ild.paired --variant task --variant
 task,hand_adjoint`), hopper's update ran 1.07x faster with `integrate` alone, 1.14x with
-`to_world` too, 1.22x with `inv_inertia` too (session 47; 1.19-1.23x on walker2d, ant and
-humanoid), no faster with `world_to_joint` too and 1.40x with the joint forces' tail too,
-1.47x with the contacts' tail too (session 48; README ILD speed, results/JOURNAL.md). A
-hand-written VJP of brax's actuator forces (`actuator.to_tau`) gained nothing there
-(session 48) and was left out.
+`to_world` too, 1.22x with `inv_inertia` too (session 47), still 1.22x with
+`world_to_joint` too, 1.40x with the joint forces' tail too and 1.46x with the contacts'
+tail too (session 48); with all six, 1.47x on walker2d, 1.48x on ant and 1.32x on humanoid
+(README ILD speed; results/JOURNAL.md, sessions 47-48). Hand-written VJPs of brax's
+actuator forces (`actuator.to_tau`) and of the 1-dof joints' constraint forces
+(`joints._one_dof`, in git history: commit 44abc09) gained nothing there (session 48) and
+were left out.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -327,7 +325,7 @@ def joints_resolve(sys, state, tau: jax.Array) -> Force:
     def j_fn(typ, link, j, jd, dof, tau):  # brax's, as in joints.resolve
         reshape_fn = lambda x: x.reshape((j.pos.shape[0], -1) + x.shape[1:])  # noqa: E731
         tau, dof = jax.tree.map(reshape_fn, (tau, dof))
-        j_fn_map = {"f": joints._free, "1": one_dof, "2": joints._two_dof,
+        j_fn_map = {"f": joints._free, "1": joints._one_dof, "2": joints._two_dof,
                     "3": joints._three_dof}
         return jax.vmap(j_fn_map[typ])(link, j, jd, dof, tau)
     jf = scan.link_types(sys, j_fn, "llldd", "l", sys.link, state.j, state.jd, sys.dof, tau)
@@ -335,77 +333,6 @@ def joints_resolve(sys, state, tau: jax.Array) -> Force:
                                      state.a_p.rot, state.a_p.pos, state.a_c.pos,
                                      state.x_i.pos)
     return Force(ang=ang, vel=vel)
-
-
-def one_dof(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
-    """`brax.spring.joints._one_dof(link, j, jd, dof, tau)`, one 1-dof joint's constraint
-    force in its joint frame, with a hand-written VJP in the joint's state (j, jd) and
-    force tau; the system's fields (link springs, dof axes and limits) get XLA's reverse
-    mode of brax's function, which XLA drops where they are constants, as in ILD."""
-    return _one_dof(link, dof, j.pos, j.rot, jd.vel, jd.ang, tau)
-
-
-def _one_dof_forward(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau):
-    out = joints._one_dof(link, Transform(pos=j_pos, rot=j_rot),
-                          Motion(vel=jd_vel, ang=jd_ang), dof, tau)
-    frame, _ = kinematics.link_to_joint_frame(dof.motion)
-    fa, fv0 = frame.ang, frame.vel[0]
-    is_t, is_r = dof.motion.vel.any(), dof.motion.ang.any()
-    # the joint angle psi (kinematics.axis_angle_ang): the signed angle about fa[0] from
-    # fa[1] to the line of nodes lon = m / |m|, m = R(j.rot) fa[2] x fa[0]
-    m = jnp.cross(_rotate(fa[2], j_rot), fa[0])
-    lon, norm = math.normalize(m)
-    y, x = jnp.dot(jnp.cross(fa[1], lon), fa[0]), jnp.dot(fa[1], lon)
-    psi = jnp.arctan2(y, x)
-    if dof.limit is None:
-        out_psi = out_xp = jnp.zeros(1, psi.dtype)
-    else:
-        lo, hi = dof.limit
-        xp = jnp.dot(j_pos, fv0)
-        out_psi, out_xp = (psi < lo) | (psi > hi), (xp < lo) | (xp > hi)
-    res = (link, dof, j_pos, j_rot, jd_vel, jd_ang, tau, fa, fv0, is_t, is_r, lon, norm,
-           jnp.allclose(m, 0.0), x, y, out_psi, out_xp)
-    return out, res
-
-
-@jax.custom_vjp
-def _one_dof(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau):
-    return _one_dof_forward(link, dof, j_pos, j_rot, jd_vel, jd_ang, tau)[0]
-
-
-def _one_dof_bwd(res, g):
-    """vel = P(-k_s j.pos) + tau fv0 t + P(-k_vd jd.vel) - k_ls fv0 t dvel(j.pos . fv0),
-    ang = -k_s (fa0 x R fa0) - k_s t (1 - r) (fa1 x R fa1) + tau fa0 r - k_ad jd.ang
-          - k_ls (1 - t) fa0 dang(psi),
-    with P(v) = v - t (fv0 . v) fv0, t and r whether the dof translates and rotates, R the
-    rotation by j.rot and dvel, dang the distances past the limits (slope 1 outside)."""
-    (link, dof, j_pos, j_rot, jd_vel, jd_ang, tau, fa, fv0, is_t, is_r, lon, norm, zero_m,
-     x, y, out_psi, out_xp) = res
-    g_ang, g_vel = g.ang, g.vel
-    k_s, k_ls = link.constraint_stiffness, link.constraint_limit_stiffness
-    t, r = is_t.astype(g_vel.dtype), is_r.astype(g_vel.dtype)
-    proj = g_vel - t * jnp.dot(fv0, g_vel) * fv0
-    g_j_pos = -k_s * proj - (k_ls * t * jnp.dot(fv0, g_vel) * out_xp) * fv0
-    g_tau = jnp.reshape(t * jnp.dot(fv0, g_vel) + r * jnp.dot(fa[0], g_ang), tau.shape)
-    g_c0 = -k_s * jnp.cross(g_ang, fa[0])
-    g_c1 = -k_s * t * (1 - r) * jnp.cross(g_ang, fa[1])
-    g_psi = -k_ls * (1 - t) * jnp.dot(fa[0], g_ang) * out_psi
-    g_lon = jnp.where(out_psi, g_psi, 0.0) * (x * jnp.cross(fa[0], fa[1]) - y * fa[1]) / (
-        x * x + y * y)  # lon is a unit vector normal to fa0: x^2 + y^2 = 1 but where m = 0
-    g_m = jnp.where(zero_m, g_lon / 1e-6,
-                    (g_lon - lon * jnp.dot(lon, g_lon)) / jnp.where(zero_m, 1.0, norm))
-    g_c2 = jnp.cross(fa[0], g_m)
-    g_j_rot = (_rotate_vjp_quat(fa[0], j_rot, g_c0) + _rotate_vjp_quat(fa[1], j_rot, g_c1)
-               + _rotate_vjp_quat(fa[2], j_rot, g_c2))
-    _, pull_sys = jax.vjp(lambda lk, df: joints._one_dof(
-        lk, Transform(pos=j_pos, rot=j_rot), Motion(vel=jd_vel, ang=jd_ang), df, tau),
-        link, dof)
-    g_link, g_dof = pull_sys(g)
-    return (g_link, g_dof, g_j_pos, g_j_rot, -link.constraint_vel_damping * proj,
-            -link.constraint_ang_damping * g_ang, g_tau)
-
-
-_one_dof.defvjp(_one_dof_forward, _one_dof_bwd)
 
 
 def _joint_to_link_forces_forward(parents, jf_ang, jf_vel, ap_rot, ap_pos, ac_pos, xi_pos):
@@ -548,10 +475,9 @@ _impulses_to_links.defvjp(_impulses_to_links_forward, _impulses_to_links_bwd)
 
 
 def step(sys, state, act, debug: bool = False):
-    """`brax.spring.pipeline.step(sys, state, act)` (brax 0.14.2) with the seven pieces above
-    (`inv_inertia`, `joints_resolve` with `one_dof`, `collisions_resolve`, `integrate`,
-    `to_world`, `world_to_joint`); everything else is brax's own functions in brax's
-    order."""
+    """`brax.spring.pipeline.step(sys, state, act)` (brax 0.14.2) with the six pieces above
+    (`inv_inertia`, `joints_resolve`, `collisions_resolve`, `integrate`, `to_world`,
+    `world_to_joint`); everything else is brax's own functions in brax's order."""
     state = state.replace(i_inv=inv_inertia(sys, state.x))
     tau = actuator.to_tau(sys, act, state.q, state.qd)
     xdd_i = Motion.create(vel=sys.gravity)

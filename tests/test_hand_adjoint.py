@@ -1,14 +1,13 @@
-"""`hand_adjoint`: brax's spring substep with the VJPs of four of its pieces (inverse
-inertia, integration, conversion to link frames, conversion to joint frames) written by hand
-(`tasks.spring_adjoint`). The same values and the same VJPs as XLA's reverse mode of brax's
-code, piece by piece and (slow) for a whole control step, and clear refusals where it does
-not fit."""
+"""`hand_adjoint`: brax's spring substep with the VJPs of six of its pieces (inverse inertia,
+joint forces and contact impulses moved to the links, integration, conversions to link and
+joint frames) written by hand (`tasks.spring_adjoint`). The same values and the same VJPs
+as XLA's reverse mode of brax's code, piece by piece and (slow) for a whole control step,
+and clear refusals where it does not fit."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax import com, kinematics
-from brax.base import Motion, Transform
 from brax.spring import collisions, integrator, joints
 
 from methods.ild.config import ILDConfig
@@ -16,7 +15,7 @@ from methods.ild.train import rollout_physics
 from tasks import make_task
 from tasks.core import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
 from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, joints_resolve,
-                                  one_dof, to_world, world_to_joint)
+                                  to_world, world_to_joint)
 from tests.test_lean_substeps import _step_and_vjp
 
 
@@ -183,8 +182,8 @@ def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
     """`joints_resolve` on 8 states mid-motion (hopper: hinges in a chain; humanoid: 1-, 2-
     and 3-dof joints in a tree) under joint forces tau, with the joint limits narrowed to
     0.2 rad about their middles so that joints are past them at both ends: its values equal
-    brax.spring.joints.resolve bit for bit and its VJP (the 1-dof joints' forces by hand,
-    the 2- and 3-dof ones' through XLA, their move to the links' centres of mass by hand)
+    brax.spring.joints.resolve bit for bit and its VJP (the per-type joint forces through
+    XLA, their move to the links' centres of mass by hand)
     equals XLA's reverse mode of brax's in every state field it reads (joint frames and
     motions, a_p, a_c, x_i), tau and the system's joint springs, limits and axes (a limit's
     cotangent is non-zero only where a joint is past it: both ends are reached)."""
@@ -209,39 +208,6 @@ def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
                                   ps, tau)
     # five system fields (both limits); j, jd, a_p (pos, rot), a_c.pos, x_i.pos and tau
     assert _reached(want_g) == 14
-
-
-@pytest.mark.parametrize("slide", [False, True], ids=["hinge", "slide"])
-def test_hand_one_dof_is_braxs_for_hinges_and_slides(slide):
-    """`one_dof` for 16 joints in random frames and motions, each a hinge or (the tasks have
-    none, so its terms are checked here) a slide along a tilted axis, limits at +/-0.1 so
-    that about half are past one: its values equal brax.spring.joints._one_dof bit for bit
-    and its hand-written VJP equals XLA's reverse mode of brax's in j, jd, tau and the
-    limits."""
-    sys_ = make_task("hopper").env.unwrapped.sys
-    n = 16
-    link = jax.tree.map(lambda v: jnp.stack([v[4]] * n), sys_.link)  # the leg's springs
-    axis = jnp.array([[0.3, -0.4, 0.866]])
-    motion = (Motion(ang=jnp.zeros((1, 3)), vel=axis) if slide
-              else Motion(ang=axis, vel=jnp.zeros((1, 3))))
-    keys = jax.random.split(jax.random.PRNGKey(5), 5)
-    rot = jax.random.normal(keys[0], (n, 4))
-    j = Transform(pos=0.2 * jax.random.normal(keys[1], (n, 3)),
-                  rot=rot / jnp.linalg.norm(rot, axis=-1, keepdims=True))
-    jd = Motion(ang=jax.random.normal(keys[2], (n, 3)), vel=jax.random.normal(keys[3], (n, 3)))
-    tau = 30.0 * jax.random.normal(keys[4], (n, 1))
-
-    def through(fn):
-        def f(lo, hi, j, jd, tau):
-            dof = jax.tree.map(lambda v: jnp.stack([v[3:4]] * n), sys_.dof)  # the thigh's
-            dof = dof.replace(motion=jax.tree.map(lambda v: jnp.stack([v] * n), motion),
-                              limit=(jnp.full((n, 1), lo), jnp.full((n, 1), hi)))
-            return jax.vmap(fn)(link, j, jd, dof, tau)
-        return f
-    args = (jnp.float32(-0.1), jnp.float32(0.1), j, jd, tau)
-    want_g = _same_values_and_vjp(through(joints._one_dof), through(one_dof), *args)
-    assert len(want_g) == 7  # lo, hi, j (pos, rot), jd (ang, vel), tau
-    assert min(float(jnp.max(jnp.abs(w))) for w in want_g) > 1e-2
 
 
 @pytest.mark.parametrize("name", ["hopper", "ant"])
@@ -274,10 +240,10 @@ def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
 
 
 def test_ild_trains_through_the_hand_written_step_where_asked():
-    """rollout_physics with `hand_adjoint` runs seven custom VJPs (inverse inertia's, the
-    1-dof joints' forces', joint forces to links', contact impulses to links',
-    integration's, to-world's, world-to-joint's) in every substep of hopper's control step,
-    lean or not; without it, none (traced, not compiled)."""
+    """rollout_physics with `hand_adjoint` runs six custom VJPs (inverse inertia's, joint
+    forces to links', contact impulses to links', integration's, to-world's,
+    world-to-joint's) in every substep of hopper's control step, lean or not; without it,
+    none (traced, not compiled)."""
     task, ps, act = _hopper_states(batch=1, steps=0)
     ps1, a1 = jax.tree.map(lambda v: v[0], ps), act[0]
 
@@ -287,9 +253,9 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     n_frames = task.env.unwrapped._n_frames
     assert n_frames > 1
     assert custom_vjps(ILDConfig(lean_substeps=True)) == 0
-    # seven per substep body: the scan's and the last substep's (lean)
-    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 14
-    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 7
+    # six per substep body: the scan's and the last substep's (lean)
+    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 12
+    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 6
 
 
 @pytest.mark.slow  # two compilations of a control step's VJP: ~2 minutes

@@ -37,10 +37,10 @@ rows:
                physics), ild_lean (the `ild` config with it) and apg_lean (brax's APG on the
                same lean physics, like with like); each is also a row group of its own
   ild_hand     the ild_task config with `hand_adjoint` (`tasks.spring_adjoint`: brax's spring
-               substep with hand-written VJPs for seven of its pieces: inverse inertia, hinge
-               and slide joint forces, joint forces to links, contact impulses to links,
-               integration, conversions to link and joint frames; brax's spring tasks
-               only, left out elsewhere)
+               substep with hand-written VJPs for six of its pieces: inverse inertia,
+               joint forces and contact impulses moved to the links, integration,
+               conversions to link and joint frames; brax's spring tasks only, left out
+               elsewhere)
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
