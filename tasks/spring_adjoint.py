@@ -355,9 +355,10 @@ def _to_parents(parents, x):
 
 
 def _from_parents(parents, x):
-    """Each link's parent's row (zero for a root): the transpose of `_to_parents`."""
+    """Row parents[k] of x for each k, zero where parents[k] is -1 (a root's parent, a
+    contact's world side): the transpose of `_to_parents`."""
     zero = jnp.zeros((1,) + x.shape[1:], x.dtype)
-    return jnp.take(jnp.concatenate([x, zero]), jnp.array(parents), axis=0, mode="wrap")
+    return jnp.take(jnp.concatenate([x, zero]), jnp.asarray(parents), axis=0, mode="wrap")
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -459,12 +460,8 @@ def _impulses_to_links_bwd(res, g):
     n = vel2.shape[0] // 2
     g_xa = jnp.einsum("lij,li->lj", i_inv, g_ang)
     g_xv = g_vel / mass[:, None]
-
-    def from_links(x):  # the transpose of segment_sum: each contact side's link's row
-        zero = jnp.zeros((1,) + x.shape[1:], x.dtype)
-        return jnp.take(jnp.concatenate([x, zero]), idx, axis=0, mode="wrap")
-    g_a = from_links(g_xa / den)  # the cotangent of ang2 + r x vel2
-    g_vel2 = from_links(g_xv / den) + jnp.cross(g_a, r)
+    g_a = _from_parents(idx, g_xa / den)  # the cotangent of ang2 + r x vel2
+    g_vel2 = _from_parents(idx, g_xv / den) + jnp.cross(g_a, r)
     g_r = jnp.cross(vel2, g_a)
     return (g_a[:n] - g_a[n:], g_vel2[:n] - g_vel2[n:], None, g_r[:n] + g_r[n:], None,
             -jax.ops.segment_sum(g_r, idx, mass.shape[0]), -jnp.sum(g_xv * xv, -1) / mass,
