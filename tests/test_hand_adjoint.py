@@ -160,7 +160,7 @@ def test_hand_world_to_joint_is_braxs_and_its_vjp(name):
     brax.kinematics.world_to_joint bit for bit, and its hand-written VJP equals XLA's reverse
     mode of brax's in the link frames and motions and in the system's link and joint frames
     (`link.transform`, `link.joint`, through `tree_replace`)."""
-    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    task, ps, _ = _states(name)
     sys_ = task.env.unwrapped.sys
     fields = ("link.transform.pos", "link.transform.rot", "link.joint.pos", "link.joint.rot")
 
@@ -183,11 +183,11 @@ def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
     and 3-dof joints in a tree) under joint forces tau, with the joint limits narrowed to
     0.2 rad about their middles so that joints are past them at both ends: its values equal
     brax.spring.joints.resolve bit for bit and its VJP (the per-type joint forces through
-    XLA, their move to the links' centres of mass by hand)
-    equals XLA's reverse mode of brax's in every state field it reads (joint frames and
-    motions, a_p, a_c, x_i), tau and the system's joint springs, limits and axes (a limit's
-    cotangent is non-zero only where a joint is past it: both ends are reached)."""
-    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    XLA, their move to the links' centres of mass by hand) equals XLA's reverse mode of
+    brax's in every state field it reads (joint frames and motions, a_p, a_c, x_i), tau and
+    the system's joint springs, limits and axes (a limit's cotangent is non-zero only where
+    a joint is past it: both ends are reached)."""
+    task, ps, _ = _states(name)
     sys_ = task.env.unwrapped.sys
     tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)
     fields = ("link.constraint_stiffness", "link.constraint_limit_stiffness", "dof.limit",
@@ -219,7 +219,7 @@ def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
     their move to the links' centres of mass, averaging and conversion to delta-velocities by
     hand) equals XLA's reverse mode of brax's in every state field it reads (x, x_i, xd_i,
     the inverse inertias and masses)."""
-    task, ps, _ = _hopper_states() if name == "hopper" else _states(name)
+    task, ps, _ = _states(name)
     sys_ = task.env.unwrapped.sys
     down = jnp.array([0.0, 0.0, 0.1])
     n_links = ps.mass.shape[-1]  # the spring tasks' masses are 1 and inverse inertias I:
