@@ -142,15 +142,16 @@ class ILDConfig:
     it on (session 39: session 38's cells with it are the 10-minute grid's acrobot cells)."""
     hand_adjoint: bool = False
     """Run the training rollouts' spring substeps as `tasks.spring_adjoint.step`: brax's
-    substep with the VJPs of its inverse inertia, integration and conversion to link frames
-    written by hand instead of XLA's reverse mode of brax's code. The same rollout and
-    gradient to float32 round-off (tests/test_hand_adjoint.py). The first pieces of a
-    hand-written adjoint of brax's physics, the route issue 4's update <= 3x forward needs
-    (the physics' backward is 64-78% of the update: results/JOURNAL.md, sessions 46-47);
-    paired on one core at B = 32 (`python -m methods.ild.paired --variant task --variant
-    task,hand_adjoint --apg-physics brax`, session 47) the update ran 1.19-1.23x faster on
-    hopper, walker2d, ant and humanoid, 1.46-1.85x brax's APG; update / forward 4.05-4.28x
-    instead of 4.75-5.28x (README ILD speed). Tasks not on brax's spring backend refuse it.
+    substep with the VJPs of six of its pieces (inverse inertia, joint forces and contact
+    impulses moved to the links, integration, conversions to link and joint frames) written
+    by hand instead of XLA's reverse mode of brax's code. The same rollout and gradient to
+    float32 round-off (tests/test_hand_adjoint.py). Pieces of a hand-written adjoint of
+    brax's physics, the route issue 4's update <= 3x forward needs (the physics' backward
+    is 64-78% of the update: results/JOURNAL.md, sessions 46-48); paired on one core at
+    B = 32 (`python -m methods.ild.paired --variant task --variant task,hand_adjoint
+    --apg-physics brax`, session 48) the update ran 1.46x, 1.47x, 1.48x and 1.32x faster on
+    hopper, walker2d, ant and humanoid, 1.76-2.07x brax's APG; update / forward 3.48-3.55x
+    instead of 4.61-5.44x (README ILD speed). Tasks not on brax's spring backend refuse it.
     Off everywhere: the recorded cells ran without it, and turning it on changes a task's
     config and so its run ids."""
     chunk: int = 1
