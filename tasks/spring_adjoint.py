@@ -30,9 +30,9 @@ task,hand_adjoint`), hopper's update ran 1.07x faster with `integrate` alone, 1.
 `world_to_joint` too, 1.40x with the joint forces' tail too and 1.46x with the contacts'
 tail too (session 48); with all six, 1.47x on walker2d, 1.48x on ant and 1.32x on humanoid
 (README ILD speed; results/JOURNAL.md, sessions 47-48). Hand-written VJPs of brax's
-actuator forces (`actuator.to_tau`) and of the 1-dof joints' constraint forces
-(`joints._one_dof`, in git history: commit 44abc09) gained nothing there (session 48) and
-were left out.
+actuator forces (`actuator.to_tau`), of the 1-dof joints' constraint forces
+(`joints._one_dof`, in git history: commit 44abc09; session 48) and of each contact's
+impulse (commit 86d9b78; session 49) gained nothing there and were left out.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -385,12 +385,12 @@ _joint_to_link_forces.defvjp(_joint_to_link_forces_forward, _joint_to_link_force
 
 def collisions_resolve(sys, state) -> Motion:
     """`brax.spring.collisions.resolve(sys, state)`: each contact's impulse by brax's own
-    formulas with a hand-written VJP (`_contact_impulse`), then the impulses moved to the
-    links' centres of mass, averaged over each link's active contacts and turned into
-    delta-velocities with a hand-written VJP (`_impulses_to_links`). As brax does,
-    `state.i_inv.take(link_idx)` takes from the flattened inverse inertias (no axis): each
-    contact side gets one scalar, entry link_idx of that flat array, not its link's matrix;
-    the values and VJPs here are brax's, that quirk included."""
+    formulas (XLA's reverse mode; `_impulse` is brax's closure, copied), then the impulses
+    moved to the links' centres of mass, averaged over each link's active contacts and
+    turned into delta-velocities with a hand-written VJP (`_impulses_to_links`). As brax
+    does, `state.i_inv.take(link_idx)` takes from the flattened inverse inertias (no axis):
+    each contact side gets one scalar, entry link_idx of that flat array, not its link's
+    matrix; the values and VJPs here are brax's, that quirk included."""
     c = contact.get(sys, state.x)
     if c is None:
         return Motion.zero((sys.num_links(),))
@@ -398,126 +398,40 @@ def collisions_resolve(sys, state) -> Motion:
     x_i, xd_i = state.x_i.take(link_idx), state.xd_i.take(link_idx)
     i_inv = state.i_inv.take(link_idx) * (link_idx > -1)
     i_mass = 1 / state.mass.take(link_idx) * (link_idx > -1)
-    kappa = sys.baumgarte_erp / sys.opt.timestep
-    p_vel, is_contact = jax.vmap(_contact_impulse, in_axes=(None,) + (0,) * 11)(
-        kappa, c.pos, c.frame[:, 0], c.dist, c.elasticity, c.friction[:, 0], link_idx > -1,
-        x_i.pos, xd_i.vel, xd_i.ang, i_inv, i_mass)
-    ang, vel = _impulses_to_links(jnp.zeros_like(p_vel), p_vel,
-                                  jax.lax.stop_gradient(is_contact), c.pos,
+    p, is_contact = jax.vmap(functools.partial(_impulse, sys))(c, link_idx, x_i, xd_i, i_inv,
+                                                               i_mass)
+    ang, vel = _impulses_to_links(p.ang, p.vel, jax.lax.stop_gradient(is_contact), c.pos,
                                   jnp.concatenate(c.link_idx), state.x_i.pos, state.mass,
                                   state.i_inv)
     return Motion(ang=ang, vel=vel)
 
 
-def _contact_impulse_forward(kappa, pos, n, dist, elasticity, mu, mask, xpos, vel, ang, i_inv,
-                             i_mass):
-    """brax.spring.collisions.resolve's `impulse` (brax 0.14.2; velocity-level, with
-    Baumgarte stabilization and friction), one contact, on its two links' rows (k = 0, 1):
-    rho_k = pos - xpos_k, u_k = mask_k (v_k + w_k x rho_k), cv = u_0 - u_1, m = -n,
-    nv = m . cv, a_k = I_k (rho_k x m), den = im_0 + im_1 + m . sum_k a_k x rho_k,
-    J = (-(1 + e) nv - kappa dist) / den; vd = cv + nv n, s = safe_norm(vd),
-    dir = vd / (1e-6 + s), b_k = I_k (rho_k x dir), den_d = im_0 + im_1 + dir . sum_k b_k x
-    rho_k, Jd = min(s / den_d, mu J); f = J m [apply_n] - Jd dir [apply_d]."""
-    rho = pos - xpos
-    u = (vel + jnp.cross(ang, rho)) * mask[:, None]
-    cv = u[0] - u[1]
-    m = -n
-    nv = jnp.dot(m, cv)
-    a = jax.vmap(jnp.dot)(i_inv, jnp.cross(rho, m))
-    s_n = jnp.sum(jnp.cross(a, rho), axis=0)
-    den = i_mass[0] + i_mass[1] + jnp.dot(m, s_n)
-    imp = (-1.0 * (1.0 + elasticity) * nv - kappa * dist) / den
-    vd = cv + nv * n
-    is_zero = jnp.allclose(vd, 0.0)
-    vd1 = vd + is_zero * 1.0
-    s = jnp.linalg.norm(vd1) * (1.0 - is_zero)
-    dirn = vd / (1e-6 + s)
-    b = jax.vmap(jnp.dot)(i_inv, jnp.cross(rho, dirn))
-    s_d = jnp.sum(jnp.cross(b, rho), axis=0)
-    den_d = i_mass[0] + i_mass[1] + jnp.dot(dirn, s_d)
-    jd0 = s / den_d
-    jd = jnp.minimum(jd0, mu * imp)
-    apply_n = (dist < 0.0) & (nv < 0) & (imp > 0.0)
-    apply_d = apply_n * (s > 1e-3)
-    f = imp * m * apply_n + (-1.0 * jd * dirn) * apply_d
-    res = (kappa, n, dist, elasticity, mu, mask, ang, i_inv, rho, u, cv, nv, a, s_n, den, imp,
-           vd, vd1, is_zero, s, dirn, b, s_d, den_d, jd0, jd, apply_n, apply_d)
-    return (f, jnp.array(apply_n, dtype=jnp.float32)), res
-
-
-def _contact_impulse_bwd(res, g):
-    (kappa, n, dist, elasticity, mu, mask, ang, i_inv, rho, u, cv, nv, a, s_n, den, imp,
-     vd, vd1, is_zero, s, dirn, b, s_d, den_d, jd0, jd, apply_n, apply_d) = res
-    g_f = g[0]
-    m = -n
-    apply_n, apply_d = apply_n.astype(g_f.dtype), apply_d.astype(g_f.dtype)
-    # f = imp m [apply_n] - jd dirn [apply_d]
-    g_imp = apply_n * jnp.dot(g_f, m)
-    g_m = apply_n * imp * g_f
-    g_jd = -apply_d * jnp.dot(g_f, dirn)
-    g_dir = -apply_d * jd * g_f
-    # jd = min(jd0, mu imp): lax.min's VJP, halves at a tie
-    w0 = jnp.where(jd0 == mu * imp, 0.5, (jd0 < mu * imp).astype(jd.dtype))
-    g_jd0, g_mimp = w0 * g_jd, (1 - w0) * g_jd
-    g_mu = g_mimp * imp
-    g_imp = g_imp + g_mimp * mu
-    # jd0 = s / den_d, den_d = im_0 + im_1 + dirn . sum_k b_k x rho_k
-    g_s = g_jd0 / den_d
-    g_den_d = -g_jd0 * jd0 / den_d
-    g_dir = g_dir + g_den_d * s_d
-    g_rho, g_i, g_dir2 = _inertia_term_bwd(i_inv, rho, dirn, b, g_den_d * dirn)
-    g_dir = g_dir + g_dir2
-    # dirn = vd / (1e-6 + s); s = safe_norm(vd)
-    g_vd = g_dir / (1e-6 + s)
-    g_s = g_s - jnp.dot(g_dir, vd) / (1e-6 + s) ** 2
-    g_vd = g_vd + g_s * (1.0 - is_zero) * vd1 / jnp.linalg.norm(vd1)
-    # vd = cv + nv n
-    g_cv = g_vd
-    g_nv = jnp.dot(g_vd, n)
-    g_n = nv * g_vd
-    # imp = (-(1 + e) nv - kappa dist) / den, den = im_0 + im_1 + m . sum_k a_k x rho_k
-    g_num = g_imp / den
-    g_den = -g_imp * imp / den
-    g_nv = g_nv - (1.0 + elasticity) * g_num
-    g_e = -nv * g_num
-    g_kappa, g_dist = -dist * g_num, -kappa * g_num
-    g_m = g_m + g_den * s_n
-    g_rho2, g_i2, g_m2 = _inertia_term_bwd(i_inv, rho, m, a, g_den * m)
-    g_rho, g_i, g_m = g_rho + g_rho2, g_i + g_i2, g_m + g_m2
-    g_i_mass = jnp.stack([g_den + g_den_d, g_den + g_den_d])
-    # nv = m . cv; cv = u_0 - u_1; u_k = mask_k (v_k + w_k x rho_k)
-    g_m = g_m + g_nv * cv
-    g_cv = g_cv + g_nv * m
-    g_u = jnp.stack([g_cv, -g_cv]) * mask[:, None]
-    g_w = jnp.cross(rho, g_u)
-    g_rho = g_rho + jnp.cross(g_u, ang)
-    g_n = g_n - g_m
-    return (g_kappa, jnp.sum(g_rho, 0), g_n, g_dist, g_e, g_mu, None, -g_rho, g_u, g_w, g_i,
-            g_i_mass)
-
-
-def _inertia_term_bwd(i_inv, rho, dirn, b, g_s):
-    """The VJP of S = sum_k b_k x rho_k, b_k = I_k (rho_k x dirn), for S's cotangent g_s: in
-    rho (2, 3), I (2, 3, 3) and dirn."""
-    g_b = jnp.cross(rho, g_s)
-    g_rho = jnp.cross(g_s, b)
-    c = jnp.cross(rho, dirn)
-    if i_inv.ndim == 1:  # brax's scalars (`collisions_resolve`): b_k = I_k c_k
-        g_i, g_c = jnp.sum(g_b * c, -1), i_inv[:, None] * g_b
-    else:
-        g_i, g_c = g_b[:, :, None] * c[:, None, :], jnp.einsum("kij,ki->kj", i_inv, g_b)
-    g_rho = g_rho + jnp.cross(dirn, g_c)
-    g_dirn = jnp.sum(jnp.cross(g_c, rho), 0)
-    return g_rho, g_i, g_dirn
-
-
-@jax.custom_vjp
-def _contact_impulse(kappa, pos, n, dist, elasticity, mu, mask, xpos, vel, ang, i_inv, i_mass):
-    return _contact_impulse_forward(kappa, pos, n, dist, elasticity, mu, mask, xpos, vel, ang,
-                                    i_inv, i_mass)[0]
-
-
-_contact_impulse.defvjp(_contact_impulse_forward, _contact_impulse_bwd)
+def _impulse(sys, c, link_idx, x_i, xd_i, i_inv, i_mass):
+    """brax.spring.collisions.resolve's `impulse` (brax 0.14.2), unchanged: one contact's
+    velocity-level impulse with Baumgarte stabilization and friction, and whether it
+    applies."""
+    rel_pos = c.pos - x_i.pos
+    rel_vel = xd_i.vel + jax.vmap(jnp.cross)(xd_i.ang, rel_pos)
+    rel_vel *= (link_idx > -1).reshape(-1, 1)
+    contact_vel = rel_vel[0] - rel_vel[1]
+    normal_vel = jnp.dot(-c.frame[0], contact_vel)
+    temp = jax.vmap(jnp.dot)(i_inv, jnp.cross(rel_pos, -c.frame[0]))
+    ang = jnp.dot(-c.frame[0], jnp.sum(jnp.cross(temp, rel_pos), axis=0))
+    baumgarte_vel = sys.baumgarte_erp / sys.opt.timestep * c.dist
+    impulse = (-1.0 * (1.0 + c.elasticity) * normal_vel - baumgarte_vel) / (
+        i_mass[0] + i_mass[1] + ang)
+    impulse_vec = impulse * -c.frame[0]
+    vel_d = contact_vel + normal_vel * c.frame[0]
+    dir_d = vel_d / (1e-6 + math.safe_norm(vel_d))
+    temp = jax.vmap(jnp.dot)(i_inv, jnp.cross(rel_pos, dir_d))
+    ang_d = jnp.dot(dir_d, jnp.sum(jnp.cross(temp, rel_pos), axis=0))
+    impulse_d = math.safe_norm(vel_d) / (i_mass[0] + i_mass[1] + ang_d)
+    impulse_d = jnp.minimum(impulse_d, c.friction[0] * impulse)
+    impulse_d_vec = -1.0 * impulse_d * dir_d
+    apply_n = (c.dist < 0.0) & (normal_vel < 0) & (impulse > 0.0)
+    apply_d = apply_n * (math.safe_norm(vel_d) > 1e-3)
+    f = Force.create(vel=impulse_vec * apply_n + impulse_d_vec * apply_d)
+    return f, jnp.array(apply_n, dtype=jnp.float32)
 
 
 def _impulses_to_links_forward(p_ang, p_vel, is_contact, c_pos, idx, xi_pos, mass, i_inv):

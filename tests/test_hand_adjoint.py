@@ -253,9 +253,9 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     n_frames = task.env.unwrapped._n_frames
     assert n_frames > 1
     assert custom_vjps(ILDConfig(lean_substeps=True)) == 0
-    # seven per substep body: the scan's and the last substep's (lean)
-    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 14
-    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 7
+    # six per substep body: the scan's and the last substep's (lean)
+    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 12
+    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 6
 
 
 @pytest.mark.slow  # two compilations of a control step's VJP: ~2 minutes
