@@ -151,7 +151,8 @@ class ILDConfig:
     B = 32 (`python -m methods.ild.paired --variant task --variant task,hand_adjoint
     --apg-physics brax`, session 48) the update ran 1.46x, 1.47x, 1.48x and 1.32x faster on
     hopper, walker2d, ant and humanoid, 1.76-2.07x brax's APG; update / forward 3.48-3.55x
-    instead of 4.61-5.44x (README ILD speed). Tasks not on brax's spring backend refuse it.
+    instead of 4.61-5.44x (README ILD speed); the pieces still in XLA's reverse mode could
+    add at most 1.42-1.45x (session 49). Tasks not on brax's spring backend refuse it.
     Off everywhere: the recorded cells ran without it, and turning it on changes a task's
     config and so its run ids."""
     chunk: int = 1
