@@ -8,13 +8,14 @@ For the forward rollout and its loss through brax's step as shipped (the benchma
 `forward`, the issue's yardstick) and for ILD's update under each `--variant` (named as
 `methods.ild.paired` names them): seconds per call (min over 3 rounds of `--calls` calls,
 no profiler), then, under `jax.profiler.trace`, the XLA CPU runtime's operations executed
-per call (every thunk event but the executor's own and the "end: " events that close some)
-and the real seconds per call divided by them; then each call's seconds and operations over
-the forward's, and the ten operation kinds (fusion names without their numbers) each
-update executes most often. Time = operations x seconds per operation: at B = 32 the spring
-tasks' arrays hold a few hundred floats, so the per-operation cost is a few hundred
-nanoseconds and an update's time is as much about how many operations XLA runs as about
-their flops (results/JOURNAL.md, session 49).
+per call (every event on XLA's threads but the executor's own, the "end: " events that
+close some operations and the thread pool's region markers) and the real seconds per call
+divided by them; then each call's seconds and operations over the forward's, and the ten
+operation kinds (fusion names without their numbers) each update executes most often.
+Time = operations x seconds per operation: at B = 32 the spring tasks' arrays hold a few
+hundred floats, so the per-operation cost is under a microsecond and an update's time
+is as much about how many operations XLA runs as about their flops (results/JOURNAL.md,
+session 49).
 """
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def _ops(fn, state, calls: int) -> collections.Counter:
                 if "XLA" not in line.name:  # the runtime's threads, not Python's
                     continue
                 for ev in line.events:
-                    if not ev.name.startswith(("ThunkExecutor", "end: ")):
+                    if not ev.name.startswith(("ThunkExecutor", "end: ", "ThreadpoolListener")):
                         count[re.sub(r"\.\d+$", "", ev.name)] += 1
     return collections.Counter({k: v / calls for k, v in count.items()})
 
@@ -86,14 +87,15 @@ def main(argv=None):
         jax.block_until_ready(loss(q, k[3], init_keys))
         return q
     fns, states = {"forward": forward}, {"forward": params}
+    one = jax.numpy.int32(1)  # updates per call
     for v in variants:
         cfg = parse_variant(v, a.batch, a.task)
         if cfg.chunk != 1:
             p.error(f"variant {v!r} runs {cfg.chunk} updates per call; count chunk=1 variants")
         update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg,
                                      k[2])
-        chunk, n = make_chunk(update, 1), jax.numpy.int32(1)
-        fns[f"update {v}"] = (lambda c: lambda s: c(s, n)[0])(chunk)  # chained: state in, out
+        chunk = make_chunk(update, 1)
+        fns[f"update {v}"] = (lambda c: lambda s: c(s, one)[0])(chunk)  # chained: state in, out
         states[f"update {v}"] = initial_state(params, opt, k[3], cfg)
     rows = []
     for name, fn in fns.items():
