@@ -252,13 +252,9 @@ def _compose(pos, rot, t_pos, t_rot):
 
 
 def _world_to_joint_forward(parents, pos, rot, vel, ang, lt_pos, lt_rot, lj_pos, lj_rot):
-    idx = jnp.array(parents)
-
-    def parent(a, world):  # brax: concatenate the world's row, take with mode='wrap'
-        row = jnp.broadcast_to(jnp.array(world, a.dtype), (1, a.shape[-1]))
-        return jnp.take(jnp.concatenate([a, row]), idx, axis=0, mode="wrap")
-    xp_pos, xp_rot = parent(pos, [0.0] * 3), parent(rot, [1.0, 0.0, 0.0, 0.0])
-    xdp_vel, xdp_ang = parent(vel, [0.0] * 3), parent(ang, [0.0] * 3)
+    xp_pos = _from_parents(parents, pos)  # brax: the world's row, taken with mode='wrap'
+    xp_rot = _from_parents(parents, rot, world=[1.0, 0.0, 0.0, 0.0])
+    xdp_vel, xdp_ang = _from_parents(parents, vel), _from_parents(parents, ang)
     t1_pos, t1_rot = _compose(xp_pos, xp_rot, lt_pos, lt_rot)
     ap_pos, ap_rot = _compose(t1_pos, t1_rot, lj_pos, lj_rot)
     ac_pos, ac_rot = _compose(pos, rot, lj_pos, lj_rot)
@@ -354,11 +350,12 @@ def _to_parents(parents, x):
     return jax.ops.segment_sum(x, jnp.array(parents), len(parents))
 
 
-def _from_parents(parents, x):
-    """Row parents[k] of x for each k, zero where parents[k] is -1 (a root's parent, a
-    contact's world side): the transpose of `_to_parents`."""
-    zero = jnp.zeros((1,) + x.shape[1:], x.dtype)
-    return jnp.take(jnp.concatenate([x, zero]), jnp.asarray(parents), axis=0, mode="wrap")
+def _from_parents(parents, x, world=None):
+    """Row parents[k] of x for each k, the row `world` (default zero) where parents[k] is -1
+    (a root's parent, a contact's world side): with zero, the transpose of `_to_parents`."""
+    row = (jnp.zeros((1,) + x.shape[1:], x.dtype) if world is None
+           else jnp.broadcast_to(jnp.array(world, x.dtype), (1,) + x.shape[1:]))
+    return jnp.take(jnp.concatenate([x, row]), jnp.asarray(parents), axis=0, mode="wrap")
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
