@@ -92,6 +92,19 @@ def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig, brax: bool = Fal
     return "brax"
 
 
+def compiled_chunk(task, cfg: ILDConfig, setup):
+    """ILD's update under `cfg` on `task`, `cfg.chunk` updates per jitted call as the trainer
+    runs them, from `speed_setup`'s (policy, goals, norm, params, keys): (chunk, state, n),
+    chunk(state, n) -> (state, metrics), compiled by one call before it returns."""
+    policy, goals, norm, params, k = setup
+    update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg, k[2])
+    chunk = make_chunk(update, cfg.chunk)
+    state = initial_state(params, opt, k[3], cfg)
+    n = jax.numpy.int32(cfg.chunk)
+    jax.block_until_ready(chunk(state, n))
+    return chunk, state, n
+
+
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         repeats: int = 8, apg_as_shipped: bool = False) -> list[dict]:
     base = ILDConfig(num_envs=batch)
@@ -101,15 +114,11 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
     if reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
                          "would time a forward rollout; pick a task with a reward gradient")
-    policy, goals, norm, params, k = speed_setup(task, base)
+    setup = speed_setup(task, base)
     steps = batch * task.episode_length
     timed = {}
     for v, cfg in configs.items():  # compile every variant before anything is timed
-        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg, k[2])
-        chunk = make_chunk(update, cfg.chunk)
-        state = initial_state(params, opt, k[3], cfg)
-        n = jax.numpy.int32(cfg.chunk)
-        jax.block_until_ready(chunk(state, n))
+        chunk, state, n = compiled_chunk(task, cfg, setup)
         timed[v] = (chunk, state, n, -(-repeats // cfg.chunk))  # calls: >= repeats updates
     seconds = {v: [] for v in variants}
 

@@ -44,8 +44,7 @@ from bench.malloc import reexec_with_hugepages
 from bench.report import append_csv
 from bench.runner import speed_settings
 from methods.ild.benchmark import speed_setup
-from methods.ild.paired import parse_variant
-from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
+from methods.ild.paired import compiled_chunk, parse_variant
 from tasks import make_task
 
 PIECES = ("none", "impulse", "contact", "joint_types", "to_tau", "inverse", "axis_angle",
@@ -95,18 +94,12 @@ def free_backward(piece: str):
 def run(task_name: str, pieces: list[str], batch: int, rounds: int, repeats: int):
     cfg = parse_variant("task,hand_adjoint", batch, task_name)
     task = make_task(task_name)
-    policy, goals, norm, params, k = speed_setup(task, cfg)
+    setup = speed_setup(task, cfg)
     calls = -(-repeats // cfg.chunk)
     timed = {}
     for piece in pieces:
         with free_backward(piece):  # traced and compiled with the patch in place
-            update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg,
-                                         k[2])
-            chunk = make_chunk(update, cfg.chunk)
-            state = initial_state(params, opt, k[3], cfg)
-            n = jax.numpy.int32(cfg.chunk)
-            jax.block_until_ready(chunk(state, n))
-        timed[piece] = (chunk, state, n)
+            timed[piece] = compiled_chunk(task, cfg, setup)
     seconds = {piece: [] for piece in pieces}
     for r in range(rounds + 1):
         for piece, (chunk, state, n) in timed.items():

@@ -21,9 +21,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
-import re
-import tempfile
 import time
 
 import jax
@@ -31,9 +28,9 @@ import jax
 from bench.malloc import reexec_with_hugepages
 from bench.report import append_csv
 from methods.ild.benchmark import make_rollout_loss, speed_setup
-from methods.ild.paired import parse_variant
-from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
+from methods.ild.paired import compiled_chunk, parse_variant
 from tasks import make_task
+from timing import xla_op_events
 
 
 def _seconds(fn, state, calls: int) -> float:
@@ -49,21 +46,12 @@ def _seconds(fn, state, calls: int) -> float:
 
 def _ops(fn, state, calls: int) -> collections.Counter:
     """XLA operations executed per call of `fn`, by kind, under the profiler."""
-    count = collections.Counter()
-    with tempfile.TemporaryDirectory() as d:
-        with jax.profiler.trace(d):
-            for _ in range(calls):
-                state = fn(state)
-            jax.block_until_ready(state)
-        data = jax.profiler.ProfileData.from_file(
-            glob.glob(d + "/**/*.xplane.pb", recursive=True)[0])
-        for plane in data.planes:
-            for line in plane.lines:
-                if "XLA" not in line.name:  # the runtime's threads, not Python's
-                    continue
-                for ev in line.events:
-                    if not ev.name.startswith(("ThunkExecutor", "end: ", "ThreadpoolListener")):
-                        count[re.sub(r"\.\d+$", "", ev.name)] += 1
+    def run():
+        s = state
+        for _ in range(calls):
+            s = fn(s)
+        jax.block_until_ready(s)
+    count = xla_op_events(run, skip=("ThunkExecutor", "end: ", "ThreadpoolListener"))[1]
     return collections.Counter({k: v / calls for k, v in count.items()})
 
 
@@ -79,7 +67,7 @@ def main(argv=None):
     variants = a.variant or ["task"]
     task = make_task(a.task)
     base = parse_variant("task", a.batch, a.task)
-    policy, goals, norm, params, k = speed_setup(task, base)
+    setup = policy, goals, norm, params, k = speed_setup(task, base)
     init_keys = jax.random.split(k[2], a.batch)
     loss = jax.jit(make_rollout_loss(task, policy, goals, norm, base))
 
@@ -87,19 +75,16 @@ def main(argv=None):
         jax.block_until_ready(loss(q, k[3], init_keys))
         return q
     fns, states = {"forward": forward}, {"forward": params}
-    one = jax.numpy.int32(1)  # updates per call
     for v in variants:
         cfg = parse_variant(v, a.batch, a.task)
         if cfg.chunk != 1:
             p.error(f"variant {v!r} runs {cfg.chunk} updates per call; count chunk=1 variants")
-        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg,
-                                     k[2])
-        chunk = make_chunk(update, 1)
-        fns[f"update {v}"] = (lambda c: lambda s: c(s, one)[0])(chunk)  # chained: state in, out
-        states[f"update {v}"] = initial_state(params, opt, k[3], cfg)
+        chunk, state, one = compiled_chunk(task, cfg, setup)
+        fns[f"update {v}"] = (lambda c, n: lambda s: c(s, n)[0])(chunk, one)  # state in, out
+        states[f"update {v}"] = state
     rows = []
     for name, fn in fns.items():
-        jax.block_until_ready(fn(states[name]))  # compile
+        jax.block_until_ready(fn(states[name]))  # compiles the forward; warms up each update
         sec = _seconds(fn, states[name], a.calls)
         ops = _ops(fn, states[name], a.calls)
         n_ops = sum(ops.values())

@@ -14,10 +14,6 @@ without the profiler first (min over 3 rounds of 50 calls).
 from __future__ import annotations
 
 import argparse
-import collections
-import glob
-import re
-import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +21,7 @@ import jax.numpy as jnp
 from methods.ild.benchmark import vjp_of_ones
 from tasks import make_task
 from tasks.core import with_substep_remat
-from timing import best_seconds
+from timing import best_seconds, xla_op_events
 
 
 def main(argv=None):
@@ -48,23 +44,11 @@ def main(argv=None):
         print(f"{a.task} {'substep-remat' if a.substep_remat else 'brax'} {name}: "
               f"{best * 1e3:.3f} ms per call")
     calls = 20
-    with tempfile.TemporaryDirectory() as d:
-        with jax.profiler.trace(d):
-            for _ in range(calls):
-                jax.block_until_ready(fns["vjp"](s0, a0))
-        data = jax.profiler.ProfileData.from_file(
-            glob.glob(d + "/**/*.xplane.pb", recursive=True)[0])
-        time_ns, count = collections.Counter(), collections.Counter()
-        for plane in data.planes:
-            for line in plane.lines:
-                if "XLA" not in line.name:  # the runtime's threads, not Python's
-                    continue
-                for ev in line.events:
-                    if ev.name.startswith("ThunkExecutor"):
-                        continue
-                    kind = re.sub(r"\.\d+$", "", ev.name)
-                    time_ns[kind] += ev.duration_ns
-                    count[kind] += 1
+
+    def run():
+        for _ in range(calls):
+            jax.block_until_ready(fns["vjp"](s0, a0))
+    time_ns, count = xla_op_events(run)
     total = sum(time_ns.values())
     print(f"VJP op time under the profiler: {total / calls / 1e3:.0f} us per call, "
           f"{sum(count.values()) / calls:.0f} ops per call")

@@ -1,8 +1,12 @@
-"""The timing the step-VJP scripts beside it share (run them as scripts: this folder is then
-on the import path); their VJP of ones is `methods.ild.benchmark.vjp_of_ones`, the
-benchmark's own."""
+"""The timing and profiling the step-VJP scripts beside it share (run them as scripts: this
+folder is then on the import path); their VJP of ones is `methods.ild.benchmark.vjp_of_ones`,
+the benchmark's own."""
 from __future__ import annotations
 
+import collections
+import glob
+import re
+import tempfile
 import time
 
 import jax
@@ -20,6 +24,28 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
         best = min(best, (time.perf_counter() - t0) / calls)
     return best
 
+
+def xla_op_events(run, skip=("ThunkExecutor",)):
+    """(nanoseconds, events) by operation kind (the event's name without its number) that
+    XLA's CPU runtime threads record while `run()` runs under `jax.profiler.trace`; events
+    whose names start with one of `skip` are left out (the executor's own by default)."""
+    time_ns, count = collections.Counter(), collections.Counter()
+    with tempfile.TemporaryDirectory() as d:
+        with jax.profiler.trace(d):
+            run()
+        data = jax.profiler.ProfileData.from_file(
+            glob.glob(d + "/**/*.xplane.pb", recursive=True)[0])
+        for plane in data.planes:
+            for line in plane.lines:
+                if "XLA" not in line.name:  # the runtime's threads, not Python's
+                    continue
+                for ev in line.events:
+                    if ev.name.startswith(skip):
+                        continue
+                    kind = re.sub(r"\.\d+$", "", ev.name)
+                    time_ns[kind] += ev.duration_ns
+                    count[kind] += 1
+    return time_ns, count
 
 
 def states_in(task, batch: int, steps: int = 10, action: float = 0.3):
