@@ -153,8 +153,8 @@ class ILDConfig:
     hopper, walker2d, ant and humanoid, 1.76-2.07x brax's APG; update / forward 3.48-3.55x
     instead of 4.61-5.44x (README ILD speed); the pieces still in XLA's reverse mode could
     add at most 1.42-1.45x (session 49). Tasks not on brax's spring backend refuse it.
-    Off everywhere: the recorded cells ran without it, and turning it on changes a task's
-    config and so its run ids."""
+    Off in the class; since session 50 the TASK_OVERRIDES of the tasks in
+    `HAND_ADJOINT_TASKS` turn it on (their 3- and 10-minute ILD cells re-run with it)."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -270,4 +270,16 @@ TASK_OVERRIDES: dict[str, dict] = {
 LEAN_SUBSTEP_TASKS = ("hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum")
 for _name in LEAN_SUBSTEP_TASKS:
     TASK_OVERRIDES[_name] = {**TASK_OVERRIDES.get(_name, {}), "lean_substeps": True}
+del _name
+
+# Hand-written VJPs of brax's spring substep (session 50) on the four spring tasks: the same
+# rollout and gradient to float32 round-off (tests/test_hand_adjoint.py); one core, B = 32,
+# paired against the same lean update through XLA's reverse mode (session 48,
+# results/hand_adjoint/paired_session48_*.csv): updates 1.46x (hopper), 1.47x (walker2d),
+# 1.48x (ant) and 1.32x (humanoid) faster, 1.76-2.07x brax's APG. Session 50 re-ran these
+# tasks' 3- and 10-minute ILD cells with it (results/JOURNAL.md). Not yet timed on a GPU
+# (results/gpu/speed_recipe.sh's ild_hand row).
+HAND_ADJOINT_TASKS = ("hopper", "walker2d", "ant", "humanoid")
+for _name in HAND_ADJOINT_TASKS:
+    TASK_OVERRIDES[_name] = {**TASK_OVERRIDES[_name], "hand_adjoint": True}
 del _name
