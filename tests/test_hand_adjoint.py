@@ -290,3 +290,22 @@ def test_hand_adjoint_refuses_what_it_does_not_model():
     assert hand_adjoint_refusal(make_task("hopper")) is None
     with pytest.raises(ValueError, match="closed_form_adjoint and hand_adjoint"):
         ILDConfig(closed_form_adjoint=True, hand_adjoint=True)
+
+
+def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
+    """Since session 50 ILD trains with the hand-written VJPs on every task whose physics they
+    model (brax's spring backend) and on no other: TASK_OVERRIDES turns `hand_adjoint` on
+    exactly where `hand_adjoint_refusal` has no objection, on top of lean substeps (merged,
+    not replaced), and `--set hand_adjoint=false` still turns it off."""
+    from bench.plugins import build_config, get_method
+    from methods.ild.config import HAND_ADJOINT_TASKS, TASK_OVERRIDES
+    from tasks.registry import TASKS
+    on = {name for name, over in TASK_OVERRIDES.items() if over.get("hand_adjoint")}
+    allowed = {name for name in TASKS if hand_adjoint_refusal(make_task(name)) is None}
+    assert set(HAND_ADJOINT_TASKS) == on == allowed == {"hopper", "walker2d", "ant",
+                                                        "humanoid"}
+    ild = get_method("ild")
+    ant = build_config(ild, "ant", "cpu", {})
+    assert ant.hand_adjoint is True and ant.lean_substeps is True and ant.num_envs == 32
+    assert build_config(ild, "reacher", "cpu", {}).hand_adjoint is False
+    assert build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"}).hand_adjoint is False

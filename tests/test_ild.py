@@ -453,7 +453,7 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
     assert {"forward", "ild", "ild_no_gn", "ild_remat", "ild_chunk3", "ild_remat_chunk3",
             "ild_untransposed", "chamfer", "step_forward", "step_vjp", "policy_forward",
             "policy_vjp"} <= set(by)
-    assert "ild_hand" not in by  # hand_adjoint is brax's spring substep's: left out here
+    assert not {"ild_hand", "ild_xla"} & set(by)  # brax's spring substep's rows: left out
     r = rows[0]
     # chunk rows: 3 updates per call, seconds and env-steps/s per update
     assert by["ild_chunk3"]["updates_per_call"] == 3 and by["ild"]["updates_per_call"] == 1
@@ -921,8 +921,9 @@ def test_speed_benchmark_runs_the_rows_asked_for():
 def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
     """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
     the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
-    hopper's lean substeps and hand-written VJPs (sessions 41, 50), pointmass's the `ild` row's own config, whose timing
-    it then reports again rather than compiling the same update twice."""
+    hopper's lean substeps and hand-written VJPs (sessions 41, 50), pointmass's the `ild`
+    row's own config, whose timing it then reports again rather than compiling the same
+    update twice."""
     from methods.ild import benchmark
     acro = benchmark.task_config("acrobot", 8)
     assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)

@@ -12,7 +12,9 @@ rows:
   ild_task     one ILD update as ILD trains this task: the `ild` config with the task's
                TASK_OVERRIDES (methods/ild/config.py) applied, so acrobot's through its closed
                form with full BPTT, swimmer's with small dots, inverted_pendulum's with full
-               BPTT (since session 39); where a task has none, `ild`'s timing again
+               BPTT (since session 39), the spring and positional tasks' with lean substeps
+               (session 41), the spring tasks' with `hand_adjoint` too (session 50); where a
+               task has none, `ild`'s timing again
   ild_plain    the same without substep remat (`--set substep_remat=false`: ILD's default
                before version 5); the remat, dots and untransposed rows below start from it
   ild_no_gn    the default update without per-step gradient normalization
@@ -39,8 +41,11 @@ rows:
   ild_hand     the ild_task config with `hand_adjoint` (`tasks.spring_adjoint`: brax's spring
                substep with hand-written VJPs for six of its pieces: inverse inertia,
                joint forces and contact impulses moved to the links, integration,
-               conversions to link and joint frames; brax's spring tasks only, left out
-               elsewhere)
+               conversions to link and joint frames), and ild_xla, the same config without
+               it (XLA's reverse mode of brax's substep; the spring tasks train with
+               `hand_adjoint` since session 50, so there ild_hand is ild_task and ild_xla
+               is what they trained with before); brax's spring tasks only, left out
+               elsewhere
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -371,8 +376,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     lean = dataclasses.replace(base, lean_substeps=True)
     lean_plain = dataclasses.replace(plain, lean_substeps=True)  # forward_lean's, apg_lean's
     trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
-    hand = (dataclasses.replace(trained, hand_adjoint=True)  # the ild_hand row's (spring)
-            if hand_adjoint_refusal(task) is None else None)
+    spring = hand_adjoint_refusal(task) is None
+    hand = dataclasses.replace(trained, hand_adjoint=True) if spring else None  # ild_hand's
+    xla = dataclasses.replace(trained, hand_adjoint=False) if spring else None  # ild_xla's
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     lean_task, only = _rewritten_physics(task, lean_plain, "lean", only)
@@ -397,7 +403,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
              dataclasses.replace(substep, small_dots=True), 1),
             ("ild_closed_form", "ild_closed_form", closed, 1),
             ("ild_lean", "ild_lean", lean, 1),
-            ("ild_hand", "ild_hand", hand, 1),
+            ("ild_hand", "ild_xla", xla, 1), ("ild_hand", "ild_hand", hand, 1),
             ("untransposed", "ild_untransposed",
              dataclasses.replace(plain, transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
@@ -408,7 +414,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
             print(f"{name}: left out on {task_name}: no brax substep loop to rewrite",
                   flush=True)
             continue
-        if cfg is None:  # ild_hand off brax's spring backend
+        if cfg is None:  # ild_hand's rows off brax's spring backend
             print(f"{name}: left out on {task_name}: {hand_adjoint_refusal(task)}", flush=True)
             continue
         if (cfg, n) in timed:
@@ -490,7 +496,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     ratio("lean_speedup", "ild", "ild_lean")
     ratio("lean_update_over_forward", "ild_lean", "forward")
     ratio("lean_update_over_forward_lean", "ild_lean", "forward_lean")
-    ratio("hand_speedup", "ild_task", "ild_hand")
+    ratio("hand_speedup", "ild_xla", "ild_hand")
     ratio("hand_update_over_forward", "ild_hand", "forward")
     ratio("hand_update_over_forward_lean", "ild_hand", "forward_lean")
     def over(name, apg):  # env-steps/s of an ILD row over an APG row's, as {name}_over_{apg}
@@ -500,7 +506,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     for name in ("ild", "ild_task", "ild_plain", "ild_remat", "ild_substep", "ild_both",
                  f"ild_chunk{chunk}", f"ild_remat_chunk{chunk}", f"ild_substep_chunk{chunk}",
                  "ild_untransposed", "ild_substep_untransposed", "ild_closed_form", "ild_lean",
-                 "ild_hand"):
+                 "ild_xla", "ild_hand"):
         over(name, "apg")
     # like with like: ILD and APG on the same rewritten physics
     for name, apg in (("ild_dots", "apg_dots"), ("ild_substep_dots", "apg_dots"),

@@ -82,6 +82,12 @@
 #   T=300 APG_GROUP=4 ILD_TASKS=none APG_TASKS="walker2d reacher" LEAN_TASKS=<the same> (288 s):
 # four APG processes at once reach their timed epoch in 180-196 s. /tmp/speed outlives a call
 # on a warm machine, so the last call's tarball holds every call's logs.
+#
+# Since session 50 hopper, walker2d, ant and humanoid train with hand_adjoint (hand-written
+# VJPs of brax's spring substep) by task override: their ild_task row is that update, and
+# the ild_hand rows set it beside ild_xla, the same lean update through XLA's reverse mode
+# (what they trained with before). Not yet run on a GPU; one call would be
+#   T=300 APG_TASKS=none ILD_TASKS="hopper walker2d ant humanoid" ILD_ROWS=forward,ild_hand
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
