@@ -268,9 +268,15 @@ TASK_OVERRIDES: dict[str, dict] = {
 # inverted_pendulum 0.251 -> 0.228 s (benchmark). Session 41 re-ran these tasks' 3- and
 # 10-minute ILD cells with it (results/JOURNAL.md). Merged into the entries above.
 LEAN_SUBSTEP_TASKS = ("hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum")
-for _name in LEAN_SUBSTEP_TASKS:
-    TASK_OVERRIDES[_name] = {**TASK_OVERRIDES.get(_name, {}), "lean_substeps": True}
-del _name
+
+
+def _merge_overrides(names: tuple[str, ...], **fields) -> None:
+    """Add `fields` to each named task's TASK_OVERRIDES entry (merged, not replaced)."""
+    for name in names:
+        TASK_OVERRIDES[name] = {**TASK_OVERRIDES.get(name, {}), **fields}
+
+
+_merge_overrides(LEAN_SUBSTEP_TASKS, lean_substeps=True)
 
 # Hand-written VJPs of brax's spring substep (session 50) on the four spring tasks: the same
 # rollout and gradient to float32 round-off (tests/test_hand_adjoint.py); one core, B = 32,
@@ -280,6 +286,4 @@ del _name
 # tasks' 3- and 10-minute ILD cells with it (results/JOURNAL.md). Not yet timed on a GPU
 # (results/gpu/speed_recipe.sh's ild_hand row).
 HAND_ADJOINT_TASKS = ("hopper", "walker2d", "ant", "humanoid")
-for _name in HAND_ADJOINT_TASKS:
-    TASK_OVERRIDES[_name] = {**TASK_OVERRIDES[_name], "hand_adjoint": True}
-del _name
+_merge_overrides(HAND_ADJOINT_TASKS, hand_adjoint=True)
