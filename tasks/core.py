@@ -260,22 +260,30 @@ def hand_adjoint_refusal(task: Task) -> str | None:
     return None
 
 
-def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False) -> Task:
+def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
+                      hinges: bool = False) -> Task:
     """A fresh copy of brax spring task `task` whose substeps run `tasks.spring_adjoint.step`:
     brax's spring substep with six pieces' VJPs written by hand (the same values and
     gradient to float32 round-off: tests/test_hand_adjoint.py). `remat` and `lean` as
-    `with_substep_remat` and `with_lean_substeps`. Errors for a task it does not fit."""
+    `with_substep_remat` and `with_lean_substeps`; `hinges`: its 1-dof joints' forces by
+    `tasks.spring_adjoint.hinge` (a scene whose 1-dof joints are all hinges). Errors for a
+    task it does not fit."""
     why = hand_adjoint_refusal(task)
     if why is None and lean:
         why = lean_substeps_refusal(task)
+    if why is None and hinges:
+        from tasks.spring_adjoint import only_hinges
+        if not only_hinges(task.env.unwrapped.sys):
+            why = (f"task {task.name!r} has 1-dof joints that slide; hinge_forces models "
+                   "hinges only: leave it False")
     if why is not None:
         raise ValueError(why)
     return _rebuilt_substep_loop(task, remat=remat, lean=lean, option="hand_adjoint",
-                                 hand_adjoint=True)
+                                 hand_adjoint=True, hinges=hinges)
 
 
 def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
-                          hand_adjoint: bool = False) -> Task:
+                          hand_adjoint: bool = False, hinges: bool = False) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
     last carrying the incoming q and qd (`lean`), and/or each substep
@@ -295,7 +303,8 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
     wrap = functools.partial(jax.checkpoint, prevent_cse=False) if remat else (lambda f: f)
 
     if hand_adjoint:
-        from tasks.spring_adjoint import step as substep_fn
+        from tasks.spring_adjoint import step
+        substep_fn = functools.partial(step, hinges=hinges)
     else:
         substep_fn = inner._pipeline.step
 

@@ -32,7 +32,10 @@ tail too (session 48); with all six, 1.47x on walker2d, 1.48x on ant and 1.32x o
 (README ILD speed; results/JOURNAL.md, sessions 47-48). Hand-written VJPs of brax's
 actuator forces (`actuator.to_tau`), of the 1-dof joints' constraint forces
 (`joints._one_dof`, in git history: commit 44abc09; session 48) and of each contact's
-impulse (commit 86d9b78; session 49) gained nothing there and were left out.
+impulse (commit 86d9b78; session 49) gained nothing there and were left out. `hinge`
+(session 51; `step(..., hinges=True)`, ILD's `hinge_forces`) is brax's 1-dof joint force
+for a hinge alone, the same values in fewer operations (XLA's reverse mode, no hand-written
+VJP): 1.03-1.09x faster updates on walker2d and ant.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -51,8 +54,9 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax import actuator, contact, fluid, kinematics, math, scan
-from brax.base import Force, Motion, Transform
+from brax.base import QD_WIDTHS, Force, Motion, Transform
 from brax.spring import joints
 
 
@@ -313,21 +317,60 @@ def _world_to_joint_bwd(parents, res, g):
 _world_to_joint.defvjp(_world_to_joint_forward, _world_to_joint_bwd)
 
 
-def joints_resolve(sys, state, tau: jax.Array) -> Force:
+def joints_resolve(sys, state, tau: jax.Array, hinges: bool = False) -> Force:
     """`brax.spring.joints.resolve(sys, state, tau)`: the joints' constraint forces in joint
     frames by brax's own per-type functions (XLA's reverse mode), then moved to the links'
-    centres of mass in world frame with a hand-written VJP (`_joint_to_link_forces`)."""
+    centres of mass in world frame with a hand-written VJP (`_joint_to_link_forces`).
+    `hinges`: the 1-dof joints' forces by `hinge` instead of brax's `_one_dof` (for a scene
+    whose 1-dof joints are all hinges: `only_hinges`)."""
+    one_dof = hinge if hinges else joints._one_dof
 
     def j_fn(typ, link, j, jd, dof, tau):  # brax's, as in joints.resolve
         reshape_fn = lambda x: x.reshape((j.pos.shape[0], -1) + x.shape[1:])  # noqa: E731
         tau, dof = jax.tree.map(reshape_fn, (tau, dof))
-        j_fn_map = {"f": joints._free, "1": joints._one_dof, "2": joints._two_dof,
+        j_fn_map = {"f": joints._free, "1": one_dof, "2": joints._two_dof,
                     "3": joints._three_dof}
         return jax.vmap(j_fn_map[typ])(link, j, jd, dof, tau)
     jf = scan.link_types(sys, j_fn, "llldd", "l", sys.link, state.j, state.jd, sys.dof, tau)
     ang, vel = _joint_to_link_forces(tuple(sys.link_parents), jf.ang, jf.vel,
                                      state.a_p.rot, state.a_p.pos, state.a_c.pos,
                                      state.x_i.pos)
+    return Force(ang=ang, vel=vel)
+
+
+def only_hinges(sys) -> bool:
+    """Whether every 1-dof joint of `sys` is a hinge (rotates, does not slide), from its
+    dof axes: where `hinge` may stand for brax's `_one_dof`. False where the axes are traced
+    (not known while tracing)."""
+    motion = sys.dof.motion
+    if any(isinstance(x, jax.core.Tracer) for x in (motion.vel, motion.ang)):
+        return False
+    one = np.array([t == "1" for t in sys.link_types for _ in range(QD_WIDTHS[t])], bool)
+    vel, ang = np.asarray(motion.vel)[one], np.asarray(motion.ang)[one]
+    return bool(np.all(vel == 0) and np.all(np.any(ang != 0, axis=-1)))
+
+
+def hinge(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
+    """`brax.spring.joints._one_dof` for a hinge: brax's formula with the terms that a
+    hinge multiplies by zero (the slide's projections, force and limit, the second axis's
+    pin) left out, and only the one joint angle the limit reads computed (`psi` of
+    `kinematics.axis_angle_ang`). The same values as brax's, bit for bit in one call
+    (tests/test_hand_adjoint.py; fused into a whole rollout, to float32 round-off), in
+    fewer operations forward and in XLA's reverse mode: hopper's update (`python
+    results/substep/scripts/loop_ops.py hopper`) runs 419,046 instead of 436,077, and is
+    1.04-1.06x faster (results/JOURNAL.md, session 51)."""
+    frame, _ = kinematics.link_to_joint_frame(dof.motion)
+    a0, a1, a2 = frame.ang[0], frame.ang[1], frame.ang[2]
+    vel = -j.pos * link.constraint_stiffness - jd.vel * link.constraint_vel_damping
+    ang = -1 * link.constraint_stiffness * jnp.cross(a0, math.rotate(a0, j.rot))
+    ang = ang + tau * a0 - link.constraint_ang_damping * jd.ang
+    if dof.limit is not None:
+        lon, _ = math.normalize(jnp.cross(math.rotate(a2, j.rot), a0))
+        psi = math.signed_angle(a0, a1, lon)
+        limit_min, limit_max = dof.limit
+        dang = jnp.where(psi < limit_min, psi - limit_min, 0)
+        dang = jnp.where(psi > limit_max, psi - limit_max, dang)
+        ang = ang - link.constraint_limit_stiffness * a0 * dang
     return Force(ang=ang, vel=vel)
 
 
@@ -471,14 +514,15 @@ def _impulses_to_links_bwd(res, g):
 _impulses_to_links.defvjp(_impulses_to_links_forward, _impulses_to_links_bwd)
 
 
-def step(sys, state, act, debug: bool = False):
+def step(sys, state, act, debug: bool = False, hinges: bool = False):
     """`brax.spring.pipeline.step(sys, state, act)` (brax 0.14.2) with the six pieces above
     (`inv_inertia`, `joints_resolve`, `collisions_resolve`, `integrate`, `to_world`,
-    `world_to_joint`); everything else is brax's own functions in brax's order."""
+    `world_to_joint`); everything else is brax's own functions in brax's order. `hinges`:
+    the 1-dof joints' forces by `hinge` (`joints_resolve`)."""
     state = state.replace(i_inv=inv_inertia(sys, state.x))
     tau = actuator.to_tau(sys, act, state.q, state.qd)
     xdd_i = Motion.create(vel=sys.gravity)
-    xf_i = joints_resolve(sys, state, tau)
+    xf_i = joints_resolve(sys, state, tau, hinges)
     if sys.enable_fluid:
         inertia = sys.link.inertia.i ** (1 - sys.spring_inertia_scale)
         xf_i += fluid.force(sys, state.x, state.xd, state.mass, inertia)

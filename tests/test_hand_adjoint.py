@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax import com, kinematics
+from brax.base import QD_WIDTHS
 from brax.spring import collisions, integrator, joints
 
 from methods.ild.config import ILDConfig
@@ -15,7 +16,7 @@ from methods.ild.train import rollout_physics
 from tasks import make_task
 from tasks.core import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
 from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, joints_resolve,
-                                  to_world, world_to_joint)
+                                  only_hinges, to_world, world_to_joint)
 from tests.test_lean_substeps import _step_and_vjp
 
 
@@ -210,6 +211,60 @@ def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
     assert _reached(want_g) == 14
 
 
+@pytest.mark.parametrize("name", ["walker2d", "ant"])
+def test_hinges_forces_are_braxs_one_dof_forces_and_their_vjp(name):
+    """On a scene whose 1-dof joints are all hinges (its system a constant, as ILD traces it),
+    `joints_resolve(..., hinges=True)` computes them by `hinge` (brax's `_one_dof` without
+    the terms a hinge multiplies by zero): values equal brax's `joints.resolve` bit for bit
+    and the VJP XLA's reverse mode of it, in the joint frames and motions, a_p, a_c, x_i and
+    tau, with the limits narrowed to 0.2 rad about their middles so that joints are past
+    both ends."""
+    task, ps, _ = _states(name)
+    sys_ = task.env.unwrapped.sys
+    lo, hi = sys_.dof.limit
+    limited = np.isfinite(lo) & np.isfinite(hi)
+    mid = np.where(limited, (lo + hi) / 2, 0.0)
+    lo2, hi2 = np.where(limited, mid - 0.1, lo), np.where(limited, mid + 0.1, hi)
+    sys_ = sys_.tree_replace({"dof.limit": (jnp.asarray(lo2, jnp.float32),
+                                            jnp.asarray(hi2, jnp.float32))})
+    assert only_hinges(sys_)
+    q_at, qd_at, qi, di = [], [], 0, 0  # the 1-dof joints' positions in q and in qd
+    for t in sys_.link_types:
+        q_at, qd_at = q_at + [qi] * (t == "1"), qd_at + [di] * (t == "1")
+        qi, di = qi + {"f": 7}.get(t, QD_WIDTHS[t]), di + QD_WIDTHS[t]
+    q = np.asarray(ps.q)[:, q_at]  # the hinges' angles
+    assert np.all(limited[qd_at]) and np.any(q < lo2[qd_at]) and np.any(q > hi2[qd_at])
+    tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)
+
+    def through(fn):
+        return lambda p, t: jax.vmap(lambda p1, t1: fn(sys_, p1, t1))(p, t)
+    want_g = _same_values_and_vjp(
+        through(joints.resolve),
+        through(lambda s1, p1, t1: joints_resolve(s1, p1, t1, hinges=True)), ps, tau)
+    names = [jax.tree_util.keystr(k) for k, _ in
+             jax.tree_util.tree_leaves_with_path((ps, tau))]
+    reached = {n for n, w in zip(names, want_g, strict=True)
+               if w.size and float(jnp.max(jnp.abs(w))) > 0}
+    # what the hinges read (jd.vel only where the scene damps it: ant, not walker2d), and
+    # what moves their forces to the links
+    assert {"[0].j.pos", "[0].j.rot", "[0].jd.ang", "[1]", "[0].a_p.pos", "[0].a_p.rot",
+            "[0].a_c.pos", "[0].x_i.pos"} <= reached
+
+
+def test_only_hinges_reads_the_scene():
+    """Hinges only: the four spring tasks (humanoid's 2- and 3-dof joints are other types);
+    not a scene with a slide (inverted_pendulum's cart) nor one whose axes are traced."""
+    for name in ("hopper", "walker2d", "ant", "humanoid"):
+        assert only_hinges(make_task(name).env.unwrapped.sys), name
+    pendulum = make_task("inverted_pendulum").env.unwrapped.sys
+    assert not only_hinges(pendulum)
+    sys_ = make_task("hopper").env.unwrapped.sys
+    seen = []
+    jax.jit(lambda ang: seen.append(only_hinges(sys_.tree_replace({"dof.motion.ang": ang})))
+            )(sys_.dof.motion.ang)
+    assert seen == [False]
+
+
 @pytest.mark.parametrize("name", ["hopper", "ant"])
 def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
     """`collisions_resolve` on 8 states mid-motion pushed 0.1 down into the floor and moving
@@ -258,18 +313,21 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 6
 
 
-@pytest.mark.slow  # two compilations of a control step's VJP: ~2 minutes
-def test_hand_adjoint_step_is_braxs_step_and_gradient():
+@pytest.mark.slow  # two compilations of a control step's VJP: ~1 minute each
+@pytest.mark.parametrize("hinges", [False, True])
+def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges):
     """One control step (4 substeps) of 8 hopper envs mid-hop through the copy ILD would
-    train on with `hand_adjoint` (lean substeps, each checkpointed): the end state and the
-    gradient of a function of it in the incoming state and the actions agree with the lean
-    copy through XLA's reverse mode to float32 round-off."""
+    train on with `hand_adjoint` (lean substeps, each checkpointed), with and without
+    `hinge_forces`: the end state and the gradient of a function of it in the incoming
+    state and the actions agree with the lean copy through XLA's reverse mode to float32
+    round-off."""
     task, ps, act = _hopper_states()
     want, want_grad = _step_and_vjp(
         with_lean_substeps(task).env.unwrapped.pipeline_step, ps, act)
     got, grad = _step_and_vjp(
-        rollout_physics(task, ILDConfig(lean_substeps=True, hand_adjoint=True)
-                        ).env.unwrapped.pipeline_step, ps, act)
+        rollout_physics(task, ILDConfig(lean_substeps=True, hand_adjoint=True,
+                                        hinge_forces=hinges)).env.unwrapped.pipeline_step,
+        ps, act)
     scale = max(float(jnp.max(jnp.abs(g))) for g in want_grad)
     assert scale > 1e-2
     for w, g in zip(want, got):
@@ -290,6 +348,18 @@ def test_hand_adjoint_refuses_what_it_does_not_model():
     assert hand_adjoint_refusal(make_task("hopper")) is None
     with pytest.raises(ValueError, match="closed_form_adjoint and hand_adjoint"):
         ILDConfig(closed_form_adjoint=True, hand_adjoint=True)
+
+
+def test_hinge_forces_refuses_what_it_does_not_model(monkeypatch):
+    """`hinge_forces` without `hand_adjoint`: the config refuses it; on a scene with a
+    sliding 1-dof joint (none of the spring tasks has one: `only_hinges` stands in):
+    `with_hand_adjoint` names the task and the field."""
+    with pytest.raises(ValueError, match="hinge_forces is a piece of hand_adjoint"):
+        ILDConfig(hinge_forces=True)
+    assert ILDConfig(hand_adjoint=True, hinge_forces=True).hinge_forces
+    monkeypatch.setattr("tasks.spring_adjoint.only_hinges", lambda sys: False)
+    with pytest.raises(ValueError, match="'hopper' has 1-dof joints that slide.*hinge_forces"):
+        with_hand_adjoint(make_task("hopper"), hinges=True)
 
 
 def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():

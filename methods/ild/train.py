@@ -215,7 +215,8 @@ def rollout_physics(task, config: ILDConfig):
     if config.closed_form_adjoint:  # its backward never reads brax's substeps
         return with_closed_form_adjoint(task)
     if config.hand_adjoint:
-        task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps)
+        task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps,
+                                 hinges=config.hinge_forces)
     elif config.lean_substeps:
         task = with_lean_substeps(task, remat=config.substep_remat)
     elif config.substep_remat and has_substep_loop(task):
