@@ -357,8 +357,9 @@ def hinge(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
     `kinematics.axis_angle_ang`). The same values as brax's, bit for bit in one call
     (tests/test_hand_adjoint.py; fused into a whole rollout, to float32 round-off), in
     fewer operations forward and in XLA's reverse mode: hopper's update (`python
-    results/substep/scripts/loop_ops.py hopper`) runs 419,046 instead of 436,077, and is
-    1.04-1.06x faster (results/JOURNAL.md, session 51)."""
+    results/substep/scripts/loop_ops.py hopper --variant task,hinge_forces`) runs 419,046
+    instead of 436,077; paired, ILD's update is 1.085x faster on ant, 1.034x on walker2d
+    and 0.99-1.02x on hopper (results/JOURNAL.md, session 51)."""
     frame, _ = kinematics.link_to_joint_frame(dof.motion)
     a0, a1, a2 = frame.ang[0], frame.ang[1], frame.ang[2]
     vel = -j.pos * link.constraint_stiffness - jd.vel * link.constraint_vel_damping

@@ -161,8 +161,9 @@ class ILDConfig:
     `_one_dof` without the terms a hinge multiplies by zero and with only the one joint
     angle its limit reads. The same values, bit for bit in one call and to float32
     round-off over a rollout (XLA fuses the rest differently), in fewer operations (hopper's
-    update 4% fewer): 1.06x faster on hopper and 1.04x on walker2d (session 51, a scratch
-    A/B interleaved in one process). Off until the cells it would change are re-run."""
+    update 4% fewer): paired (`python -m methods.ild.paired --variant task --variant
+    task,hinge_forces --apg-physics brax`, session 51) 1.085x faster on ant, 1.034x on
+    walker2d, 0.99-1.02x on hopper. Off until the cells it would change are re-run."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
