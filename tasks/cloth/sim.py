@@ -40,6 +40,7 @@ import functools
 from typing import NamedTuple
 
 import jax
+import jax.experimental
 import jax.numpy as jnp
 import numpy as np
 
@@ -257,7 +258,12 @@ def make_step(p: ClothParams):
 def settled_state(p: ClothParams = ClothParams()) -> ClothState:
     """The reset state: the incline after SETTLE_STEPS zero-action steps with the grippers
     parked away, then the grippers placed on particles 53 and 245 (deterministic; computed
-    once per process, in float32)."""
+    once per process, in float32, also when first asked for under jax's x64 mode)."""
+    with jax.experimental.disable_x64():  # cached: the same float32 state in any mode
+        return _settle(p)
+
+
+def _settle(p: ClothParams) -> ClothState:
     park = jnp.asarray([[*GRIPPER_PARK, GRIPPER_RADIUS]] * 2, jnp.float32)
     s = ClothState(jnp.asarray(initial_layout()), jnp.zeros((N, 3), jnp.float32), park)
     step = make_step(dataclasses.replace(p, grad_norm=False))
