@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax import com, kinematics
-from brax.base import QD_WIDTHS
 from brax.spring import collisions, integrator, joints
 
 from methods.ild.config import ILDConfig
@@ -228,10 +227,7 @@ def test_hinges_forces_are_braxs_one_dof_forces_and_their_vjp(name):
     sys_ = sys_.tree_replace({"dof.limit": (jnp.asarray(lo2, jnp.float32),
                                             jnp.asarray(hi2, jnp.float32))})
     assert only_hinges(sys_)
-    q_at, qd_at, qi, di = [], [], 0, 0  # the 1-dof joints' positions in q and in qd
-    for t in sys_.link_types:
-        q_at, qd_at = q_at + [qi] * (t == "1"), qd_at + [di] * (t == "1")
-        qi, di = qi + {"f": 7}.get(t, QD_WIDTHS[t]), di + QD_WIDTHS[t]
+    q_at, qd_at = np.asarray(sys_.q_idx("1")), np.asarray(sys_.qd_idx("1"))  # 1-dof joints
     q = np.asarray(ps.q)[:, q_at]  # the hinges' angles
     assert np.all(limited[qd_at]) and np.any(q < lo2[qd_at]) and np.any(q > hi2[qd_at])
     tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)

@@ -71,9 +71,10 @@ def loops(hlo: str) -> list[dict]:
 
     def visit(comp: str, passes: int, depth: int):
         for line in run[comp]:
-            if _opcode(line) == "call":  # a small loop's wrapper runs its computation inline
+            op = _opcode(line)
+            if op == "call":  # a small loop's wrapper runs its computation inline
                 visit(re.search(r"to_apply=(%[^,\s]+)", line).group(1), passes, depth)
-            if _opcode(line) != "while":
+            if op != "while":
                 continue
             body = re.search(r"body=(%[^,\s]+)", line).group(1)
             trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
