@@ -362,16 +362,26 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     """Since session 50 ILD trains with the hand-written VJPs on every task whose physics they
     model (brax's spring backend) and on no other: TASK_OVERRIDES turns `hand_adjoint` on
     exactly where `hand_adjoint_refusal` has no objection, on top of lean substeps (merged,
-    not replaced), and `--set hand_adjoint=false` still turns it off."""
+    not replaced). Since session 52 `hinge_forces` too, on exactly the scenes among them whose
+    1-dof joints are all hinges (`only_hinges`: all four). Turning `hand_adjoint` off takes
+    `hinge_forces` off with it, and alone is refused naming both fields."""
     from bench.plugins import build_config, get_method
-    from methods.ild.config import HAND_ADJOINT_TASKS, TASK_OVERRIDES
+    from methods.ild.config import HAND_ADJOINT_TASKS, HINGE_FORCES_TASKS, TASK_OVERRIDES
     from tasks.registry import TASKS
+    from tasks.spring_adjoint import only_hinges
     on = {name for name, over in TASK_OVERRIDES.items() if over.get("hand_adjoint")}
     allowed = {name for name in TASKS if hand_adjoint_refusal(make_task(name)) is None}
     assert set(HAND_ADJOINT_TASKS) == on == allowed == {"hopper", "walker2d", "ant",
                                                         "humanoid"}
+    hinged = {name for name, over in TASK_OVERRIDES.items() if over.get("hinge_forces")}
+    assert set(HINGE_FORCES_TASKS) == hinged == {
+        name for name in allowed if only_hinges(make_task(name).env.unwrapped.sys)}
     ild = get_method("ild")
     ant = build_config(ild, "ant", "cpu", {})
-    assert ant.hand_adjoint is True and ant.lean_substeps is True and ant.num_envs == 32
-    assert build_config(ild, "reacher", "cpu", {}).hand_adjoint is False
-    assert build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"}).hand_adjoint is False
+    assert ant.hand_adjoint and ant.hinge_forces and ant.lean_substeps and ant.num_envs == 32
+    reacher = build_config(ild, "reacher", "cpu", {})
+    assert reacher.hand_adjoint is False and reacher.hinge_forces is False
+    off = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "false"})
+    assert off.hand_adjoint is False and off.hinge_forces is False
+    with pytest.raises(ValueError, match="--set hand_adjoint=false --set hinge_forces=false"):
+        build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"})

@@ -162,8 +162,11 @@ class ILDConfig:
     angle its limit reads. The same values, bit for bit in one call and to float32
     round-off over a rollout (XLA fuses the rest differently), in fewer operations (hopper's
     update 4% fewer): paired (`python -m methods.ild.paired --variant task --variant
-    task,hinge_forces --apg-physics brax`, session 51) 1.085x faster on ant, 1.034x on
-    walker2d, 0.99-1.02x on hopper. Off until the cells it would change are re-run."""
+    task,hinge_forces --apg-physics brax`, sessions 51-52) 1.085x faster on ant, 1.034x on
+    walker2d, 1.03x on humanoid, 0.99-1.02x on hopper. Off in the class; since session 52
+    the TASK_OVERRIDES of the tasks in `HINGE_FORCES_TASKS` turn it on (their 3- and
+    10-minute ILD cells re-run with it); there `--set hand_adjoint=false` needs `--set
+    hinge_forces=false` beside it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -196,7 +199,8 @@ class ILDConfig:
              "them False"),
             (self.hand_adjoint or not self.hinge_forces,
              "hinge_forces is a piece of hand_adjoint's spring substep; set hand_adjoint "
-             "True or hinge_forces False"),
+             "True or hinge_forces False (on the tasks in HINGE_FORCES_TASKS it is on by "
+             "task override: --set hand_adjoint=false --set hinge_forces=false)"),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
@@ -299,3 +303,12 @@ _merge_overrides(LEAN_SUBSTEP_TASKS, lean_substeps=True)
 # (results/gpu/speed_recipe.sh's ild_hand row).
 HAND_ADJOINT_TASKS = ("hopper", "walker2d", "ant", "humanoid")
 _merge_overrides(HAND_ADJOINT_TASKS, hand_adjoint=True)
+
+# Hinge-only joint forces (session 51) on the spring tasks whose 1-dof joints are all hinges
+# (every one with hand_adjoint): the same values bit for bit in one call, to float32
+# round-off over a rollout (tests/test_hand_adjoint.py); one core, B = 32, paired against
+# the same update with brax's `_one_dof` (results/hand_adjoint/paired_session5[12]_*_hinges*
+# .csv): ant 1.085x, walker2d 1.034x, hopper 0.99-1.02x, humanoid 1.03x (rounds 0.92-1.16x).
+# Session 52 re-ran these tasks' 3- and 10-minute ILD cells with it (results/JOURNAL.md).
+HINGE_FORCES_TASKS = HAND_ADJOINT_TASKS
+_merge_overrides(HINGE_FORCES_TASKS, hinge_forces=True)
