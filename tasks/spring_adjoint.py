@@ -35,7 +35,8 @@ actuator forces (`actuator.to_tau`), of the 1-dof joints' constraint forces
 impulse (commit 86d9b78; session 49) gained nothing there and were left out. `hinge`
 (session 51; `step(..., hinges=True)`, ILD's `hinge_forces`) is brax's 1-dof joint force
 for a hinge alone, the same values in fewer operations (XLA's reverse mode, no hand-written
-VJP): 1.03-1.09x faster updates on walker2d and ant.
+VJP): 1.03-1.09x faster updates on walker2d, ant and humanoid; ILD's default on the four
+spring tasks since session 52.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -358,8 +359,8 @@ def hinge(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
     (tests/test_hand_adjoint.py; fused into a whole rollout, to float32 round-off), in
     fewer operations forward and in XLA's reverse mode: hopper's update (`python
     results/substep/scripts/loop_ops.py hopper --variant task,hinge_forces`) runs 419,046
-    instead of 436,077; paired, ILD's update is 1.085x faster on ant, 1.034x on walker2d
-    and 0.99-1.02x on hopper (results/JOURNAL.md, session 51)."""
+    instead of 436,077; paired, ILD's update is 1.085x faster on ant, 1.034x on walker2d,
+    1.03x on humanoid and 0.99-1.02x on hopper (results/JOURNAL.md, sessions 51-52)."""
     frame, _ = kinematics.link_to_joint_frame(dof.motion)
     a0, a1, a2 = frame.ang[0], frame.ang[1], frame.ang[2]
     vel = -j.pos * link.constraint_stiffness - jd.vel * link.constraint_vel_damping

@@ -921,15 +921,15 @@ def test_speed_benchmark_runs_the_rows_asked_for():
 def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
     """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
     the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
-    hopper's lean substeps and hand-written VJPs (sessions 41, 50), pointmass's the `ild`
-    row's own config, whose timing it then reports again rather than compiling the same
-    update twice."""
+    hopper's lean substeps, hand-written VJPs and hinge forces (sessions 41, 50, 52),
+    pointmass's the `ild` row's own config, whose timing it then reports again rather than
+    compiling the same update twice."""
     from methods.ild import benchmark
     acro = benchmark.task_config("acrobot", 8)
     assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
     assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
     assert benchmark.task_config("hopper", 8) == ILDConfig(num_envs=8, lean_substeps=True,
-                                                           hand_adjoint=True)
+                                                           hand_adjoint=True, hinge_forces=True)
     assert benchmark.task_config("pointmass", 8) == ILDConfig(num_envs=8)
     compiled = []
     real = benchmark.make_update
