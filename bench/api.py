@@ -114,5 +114,10 @@ class MethodSpec:
     """Named field overrides, e.g. {'cpu': {...}, 'paper': {}}."""
     task_overrides: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
     """Per-task field overrides applied before presets and user overrides."""
+    requires: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    """Field -> the field it needs on (e.g. a piece of a rewrite -> the rewrite): where a
+    task override turned the first on and a preset or the user turns the second off, the
+    first goes back to its default with it (the user asked for neither); set by the user
+    or a preset, the config's own check refuses the pair."""
     reference: bool = False
     """True for references that are not imitation methods (true reward / sim at test)."""

@@ -130,21 +130,27 @@ def _coerce(field: dataclasses.Field, hint, value: Any, method: str) -> Any:
 
 def build_config(spec: MethodSpec, task: str, preset: str | None = None,
                  overrides: Mapping[str, Any] | None = None):
-    """defaults (the paper's) <- per-task overrides <- preset <- user overrides."""
+    """defaults (the paper's) <- per-task overrides <- preset <- user overrides; a task
+    override whose `spec.requires` field a preset or the user turns off is dropped."""
     fields = {f.name: f for f in dataclasses.fields(spec.config_cls)}
     hints = typing.get_type_hints(spec.config_cls)
     if preset is not None and preset not in spec.presets:
         raise ConfigError(f"method {spec.name!r} has no preset {preset!r}; presets: "
                           f"{', '.join(sorted(spec.presets)) or 'none'}")
     merged: dict[str, Any] = {}
+    layer_of: dict[str, int] = {}  # the last layer that set each field (0: the task's)
     layers = [spec.task_overrides.get(task, {}), spec.presets.get(preset, {}) if preset else {},
               overrides or {}]
-    for layer in layers:
+    for i, layer in enumerate(layers):
         for k, v in layer.items():
             if k not in fields:
                 raise ConfigError(f"method {spec.name!r} has no config field {k!r}; fields: "
                                   f"{', '.join(fields)}")
             merged[k] = _coerce(fields[k], hints[k], v, spec.name)
+            layer_of[k] = i
+    for field, needed in spec.requires.items():
+        if layer_of.get(field) == 0 and layer_of.get(needed, 0) > 0 and not merged[needed]:
+            del merged[field]
     try:
         return spec.config_cls(**merged)
     except (TypeError, ValueError) as e:

@@ -261,13 +261,17 @@ def hand_adjoint_refusal(task: Task) -> str | None:
 
 
 def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
-                      hinges: bool = False) -> Task:
+                      hinges: bool = False, planar: bool = False,
+                      rotary: bool = False) -> Task:
     """A fresh copy of brax spring task `task` whose substeps run `tasks.spring_adjoint.step`:
     brax's spring substep with six pieces' VJPs written by hand (the same values and
     gradient to float32 round-off: tests/test_hand_adjoint.py). `remat` and `lean` as
     `with_substep_remat` and `with_lean_substeps`; `hinges`: its 1-dof joints' forces by
-    `tasks.spring_adjoint.hinge` (a scene whose 1-dof joints are all hinges). Errors for a
-    task it does not fit."""
+    `tasks.spring_adjoint.hinge` (a scene whose 1-dof joints are all hinges); `planar`: its
+    3-dof joints' forces by `tasks.spring_adjoint.planar_root` (a scene whose 3-dof joints
+    are all planar roots); `rotary`: its 2- and 3-dof joints' forces by
+    `tasks.spring_adjoint.rotary_two` and `rotary_three` (a scene whose 2- and 3-dof joints
+    only turn). Errors for a task it does not fit."""
     why = hand_adjoint_refusal(task)
     if why is None and lean:
         why = lean_substeps_refusal(task)
@@ -276,14 +280,27 @@ def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
         if not only_hinges(task.env.unwrapped.sys):
             why = (f"task {task.name!r} has 1-dof joints that slide; hinge_forces models "
                    "hinges only: leave it False")
+    if why is None and planar:
+        from tasks.spring_adjoint import planar_roots
+        if planar_roots(task.env.unwrapped.sys) is None:
+            why = (f"task {task.name!r} has no planar root (3-dof joints that are two "
+                   "unlimited slides and an unlimited hinge, as hopper's); planar_root "
+                   "models those only: leave it False")
+    if why is None and rotary:
+        from tasks.spring_adjoint import rotary_joints
+        if not rotary_joints(task.env.unwrapped.sys):
+            why = (f"task {task.name!r} has no 2- or 3-dof joints, or some that slide; "
+                   "rotary_joints models joints that only turn: leave it False")
     if why is not None:
         raise ValueError(why)
     return _rebuilt_substep_loop(task, remat=remat, lean=lean, option="hand_adjoint",
-                                 hand_adjoint=True, hinges=hinges)
+                                 hand_adjoint=True, hinges=hinges, planar=planar,
+                                 rotary=rotary)
 
 
 def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
-                          hand_adjoint: bool = False, hinges: bool = False) -> Task:
+                          hand_adjoint: bool = False, hinges: bool = False,
+                          planar: bool = False, rotary: bool = False) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
     last carrying the incoming q and qd (`lean`), and/or each substep
@@ -304,7 +321,7 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
 
     if hand_adjoint:
         from tasks.spring_adjoint import step
-        substep_fn = functools.partial(step, hinges=hinges)
+        substep_fn = functools.partial(step, hinges=hinges, planar=planar, rotary=rotary)
     else:
         substep_fn = inner._pipeline.step
 

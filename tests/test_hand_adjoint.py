@@ -15,7 +15,8 @@ from methods.ild.train import rollout_physics
 from tasks import make_task
 from tasks.core import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
 from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, joints_resolve,
-                                  only_hinges, to_world, world_to_joint)
+                                  only_hinges, planar_roots, rotary_joints, to_world,
+                                  world_to_joint)
 from tests.test_lean_substeps import _step_and_vjp
 
 
@@ -210,6 +211,40 @@ def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
     assert _reached(want_g) == 14
 
 
+def _narrowed_limits(sys_):
+    """`sys_` with each finite joint limit narrowed to 0.2 rad about its middle (joints
+    mid-motion are then past both ends), and the narrowed (lower, upper) limits."""
+    lo, hi = sys_.dof.limit
+    limited = np.isfinite(lo) & np.isfinite(hi)
+    mid = np.where(limited, (lo + hi) / 2, 0.0)
+    lo2, hi2 = np.where(limited, mid - 0.1, lo), np.where(limited, mid + 0.1, hi)
+    return sys_.tree_replace({"dof.limit": (jnp.asarray(lo2, jnp.float32),
+                                            jnp.asarray(hi2, jnp.float32))}), lo2, hi2
+
+
+# what the scene-specific joint forces read (jd.vel only where the scene damps it), and
+# what moves their forces to the links
+SCENE_FORCES_READ = {"[0].j.pos", "[0].j.rot", "[0].jd.ang", "[1]", "[0].a_p.pos",
+                     "[0].a_p.rot", "[0].a_c.pos", "[0].x_i.pos"}
+
+
+def _scene_forces_are_braxs(sys_, ps, **pieces):
+    """`joints_resolve(..., **pieces)` on states `ps` under joint forces tau: values equal
+    brax's `joints.resolve` bit for bit and the VJP XLA's reverse mode of it; returns the
+    names of the state and tau leaves its cotangent reaches."""
+    tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)
+
+    def through(fn):
+        return lambda p, t: jax.vmap(lambda p1, t1: fn(sys_, p1, t1))(p, t)
+    want_g = _same_values_and_vjp(
+        through(joints.resolve),
+        through(lambda s1, p1, t1: joints_resolve(s1, p1, t1, **pieces)), ps, tau)
+    names = [jax.tree_util.keystr(k) for k, _ in
+             jax.tree_util.tree_leaves_with_path((ps, tau))]
+    return {n for n, w in zip(names, want_g, strict=True)
+            if w.size and float(jnp.max(jnp.abs(w))) > 0}
+
+
 @pytest.mark.parametrize("name", ["walker2d", "ant"])
 def test_hinges_forces_are_braxs_one_dof_forces_and_their_vjp(name):
     """On a scene whose 1-dof joints are all hinges (its system a constant, as ILD traces it),
@@ -219,32 +254,75 @@ def test_hinges_forces_are_braxs_one_dof_forces_and_their_vjp(name):
     tau, with the limits narrowed to 0.2 rad about their middles so that joints are past
     both ends."""
     task, ps, _ = _states(name)
-    sys_ = task.env.unwrapped.sys
-    lo, hi = sys_.dof.limit
-    limited = np.isfinite(lo) & np.isfinite(hi)
-    mid = np.where(limited, (lo + hi) / 2, 0.0)
-    lo2, hi2 = np.where(limited, mid - 0.1, lo), np.where(limited, mid + 0.1, hi)
-    sys_ = sys_.tree_replace({"dof.limit": (jnp.asarray(lo2, jnp.float32),
-                                            jnp.asarray(hi2, jnp.float32))})
+    sys_, lo2, hi2 = _narrowed_limits(task.env.unwrapped.sys)
     assert only_hinges(sys_)
     q_at, qd_at = np.asarray(sys_.q_idx("1")), np.asarray(sys_.qd_idx("1"))  # 1-dof joints
     q = np.asarray(ps.q)[:, q_at]  # the hinges' angles
-    assert np.all(limited[qd_at]) and np.any(q < lo2[qd_at]) and np.any(q > hi2[qd_at])
-    tau = 50.0 * jnp.cos(jnp.arange(ps.qd.size, dtype=jnp.float32)).reshape(ps.qd.shape)
+    assert np.all(np.isfinite(lo2[qd_at])) and np.any(q < lo2[qd_at]) and np.any(q > hi2[qd_at])
+    assert SCENE_FORCES_READ <= _scene_forces_are_braxs(sys_, ps, hinges=True)
 
-    def through(fn):
-        return lambda p, t: jax.vmap(lambda p1, t1: fn(sys_, p1, t1))(p, t)
-    want_g = _same_values_and_vjp(
-        through(joints.resolve),
-        through(lambda s1, p1, t1: joints_resolve(s1, p1, t1, hinges=True)), ps, tau)
-    names = [jax.tree_util.keystr(k) for k, _ in
-             jax.tree_util.tree_leaves_with_path((ps, tau))]
-    reached = {n for n, w in zip(names, want_g, strict=True)
-               if w.size and float(jnp.max(jnp.abs(w))) > 0}
-    # what the hinges read (jd.vel only where the scene damps it: ant, not walker2d), and
-    # what moves their forces to the links
-    assert {"[0].j.pos", "[0].j.rot", "[0].jd.ang", "[1]", "[0].a_p.pos", "[0].a_p.rot",
-            "[0].a_c.pos", "[0].x_i.pos"} <= reached
+
+@pytest.mark.parametrize("name", ["hopper", "walker2d"])
+def test_planar_root_forces_are_braxs_three_dof_forces_and_their_vjp(name):
+    """On a scene whose 3-dof joints are planar roots (two unlimited slides and a hinge: the
+    system a constant, as ILD traces it), `joints_resolve(..., planar=True)` computes their
+    forces by `planar_root` (brax's `_three_dof` without what such a joint multiplies by
+    zero): values equal brax's `joints.resolve` bit for bit and the VJP XLA's reverse mode
+    of it, with the hinges' forces by `hinge` too and the states' root offset from its
+    joint (the slides' pin and the hinge's alignment torque both pull)."""
+    task, ps, _ = _states(name)
+    sys_ = task.env.unwrapped.sys
+    assert planar_roots(sys_) == ((0, 1), 2)
+    ps = ps.replace(j=ps.j.replace(pos=ps.j.pos + 0.01 * jnp.cos(
+        jnp.arange(ps.j.pos.size, dtype=jnp.float32)).reshape(ps.j.pos.shape)))
+    assert SCENE_FORCES_READ <= _scene_forces_are_braxs(sys_, ps, hinges=True, planar=True)
+
+
+def test_rotary_forces_are_braxs_two_and_three_dof_forces_and_their_vjp():
+    """On humanoid, whose 2- and 3-dof joints only turn (its system a constant, as ILD traces
+    it), `joints_resolve(..., hinges=True, rotary=True)` computes their forces by
+    `rotary_two` and `rotary_three` (brax's `_two_dof` and `_three_dof` without what such
+    joints multiply by zero): values equal brax's `joints.resolve` bit for bit and the VJP
+    XLA's reverse mode of it, with the limits narrowed to 0.2 rad about their middles so
+    that the 2- and 3-dof joints are past both ends."""
+    task, ps, _ = _states("humanoid")
+    sys_, lo2, hi2 = _narrowed_limits(task.env.unwrapped.sys)
+    assert rotary_joints(sys_)
+    multi = np.concatenate([np.asarray(sys_.q_idx(t)) for t in "23"])
+    q = np.asarray(ps.q)[:, multi]  # the 2- and 3-dof joints' angles
+    at = np.concatenate([np.asarray(sys_.qd_idx(t)) for t in "23"])
+    assert np.any(q < lo2[at]) and np.any(q > hi2[at])
+    assert SCENE_FORCES_READ <= _scene_forces_are_braxs(sys_, ps, hinges=True, rotary=True)
+
+
+def test_planar_roots_reads_the_scene():
+    """Planar roots: hopper's and walker2d's (rows 0 and 1 slide, row 2 turns); not ant's or
+    humanoid's (free roots; humanoid's 3-dof joints turn about three axes), nor a hopper
+    whose root is limited or whose axes are traced; and `joints_resolve` refuses such a
+    scene by name."""
+    for name in ("hopper", "walker2d"):
+        assert planar_roots(make_task(name).env.unwrapped.sys) == ((0, 1), 2), name
+    for name in ("ant", "humanoid"):
+        assert planar_roots(make_task(name).env.unwrapped.sys) is None, name
+    sys_ = make_task("hopper").env.unwrapped.sys
+    lo, hi = (np.array(x) for x in sys_.dof.limit)
+    lo[2] = -1.0
+    limited = sys_.tree_replace({"dof.limit": (jnp.asarray(lo), jnp.asarray(hi))})
+    assert planar_roots(limited) is None
+    seen = []
+    jax.jit(lambda ang: seen.append(planar_roots(sys_.tree_replace({"dof.motion.ang": ang})))
+            )(sys_.dof.motion.ang)
+    assert seen == [None]
+    task, ps, _ = _states("ant", batch=1, steps=1)
+    with pytest.raises(ValueError, match="3-dof joints are not all planar roots"):
+        joints_resolve(task.env.unwrapped.sys, jax.tree.map(lambda v: v[0], ps),
+                       jnp.zeros(ps.qd.shape[1:]), planar=True)
+    # rotary joints: humanoid's only (hopper's root slides; ant has no 2- or 3-dof joint)
+    assert rotary_joints(make_task("humanoid").env.unwrapped.sys)
+    assert not rotary_joints(sys_) and not rotary_joints(task.env.unwrapped.sys)
+    with pytest.raises(ValueError, match="2- and 3-dof joints do not all only turn"):
+        joints_resolve(task.env.unwrapped.sys, jax.tree.map(lambda v: v[0], ps),
+                       jnp.zeros(ps.qd.shape[1:]), rotary=True)
 
 
 def test_only_hinges_reads_the_scene():
@@ -310,19 +388,20 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
 
 
 @pytest.mark.slow  # two compilations of a control step's VJP: ~1 minute each
-@pytest.mark.parametrize("hinges", [False, True])
-def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges):
+@pytest.mark.parametrize("hinges,planar", [(False, False), (True, False), (True, True)])
+def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges, planar):
     """One control step (4 substeps) of 8 hopper envs mid-hop through the copy ILD would
     train on with `hand_adjoint` (lean substeps, each checkpointed), with and without
-    `hinge_forces`: the end state and the gradient of a function of it in the incoming
-    state and the actions agree with the lean copy through XLA's reverse mode to float32
-    round-off."""
+    `hinge_forces` and `planar_root`: the end state and the gradient of a
+    function of it in the incoming state and the actions agree with the lean copy through
+    XLA's reverse mode to float32 round-off."""
     task, ps, act = _hopper_states()
     want, want_grad = _step_and_vjp(
         with_lean_substeps(task).env.unwrapped.pipeline_step, ps, act)
     got, grad = _step_and_vjp(
         rollout_physics(task, ILDConfig(lean_substeps=True, hand_adjoint=True,
-                                        hinge_forces=hinges)).env.unwrapped.pipeline_step,
+                                        hinge_forces=hinges, planar_root=planar)
+                        ).env.unwrapped.pipeline_step,
         ps, act)
     scale = max(float(jnp.max(jnp.abs(g))) for g in want_grad)
     assert scale > 1e-2
@@ -358,15 +437,33 @@ def test_hinge_forces_refuses_what_it_does_not_model(monkeypatch):
         with_hand_adjoint(make_task("hopper"), hinges=True)
 
 
+def test_planar_root_and_rotary_joints_refuse_what_they_do_not_model():
+    """`planar_root` or `rotary_joints` without `hand_adjoint`: the config refuses it,
+    naming the field; on a scene without planar roots (ant) or without joints
+    that only turn (hopper, ant), `with_hand_adjoint` names the task and the field."""
+    for field in ("planar_root", "rotary_joints"):
+        with pytest.raises(ValueError, match=f"{field} is a piece of hand_adjoint"):
+            ILDConfig(**{field: True})
+        assert getattr(ILDConfig(hand_adjoint=True, **{field: True}), field)
+    with pytest.raises(ValueError, match="'ant' has no planar root.*planar_root"):
+        with_hand_adjoint(make_task("ant"), planar=True)
+    for name in ("hopper", "ant"):
+        with pytest.raises(ValueError, match=f"'{name}' has no 2- or 3-dof.*rotary_joints"):
+            with_hand_adjoint(make_task(name), rotary=True)
+
+
 def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     """Since session 50 ILD trains with the hand-written VJPs on every task whose physics they
     model (brax's spring backend) and on no other: TASK_OVERRIDES turns `hand_adjoint` on
     exactly where `hand_adjoint_refusal` has no objection, on top of lean substeps (merged,
     not replaced). Since session 52 `hinge_forces` too, on exactly the scenes among them whose
-    1-dof joints are all hinges (`only_hinges`: all four). Turning `hand_adjoint` off takes
-    `hinge_forces` off with it, and alone is refused naming both fields."""
+    1-dof joints are all hinges (`only_hinges`: all four), and since session 53 `planar_root`
+    and `rotary_joints` on exactly the scenes that have those joints (`planar_roots`:
+    hopper, walker2d; `rotary_joints`: humanoid). Turning `hand_adjoint` off takes them off
+    with it; asking for `hinge_forces` without it is refused by name."""
     from bench.plugins import build_config, get_method
-    from methods.ild.config import HAND_ADJOINT_TASKS, HINGE_FORCES_TASKS, TASK_OVERRIDES
+    from methods.ild.config import (HAND_ADJOINT_TASKS, HINGE_FORCES_TASKS, PLANAR_ROOT_TASKS,
+                                    ROTARY_JOINTS_TASKS, TASK_OVERRIDES)
     from tasks.registry import TASKS
     from tasks.spring_adjoint import only_hinges
     on = {name for name, over in TASK_OVERRIDES.items() if over.get("hand_adjoint")}
@@ -376,6 +473,12 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     hinged = {name for name, over in TASK_OVERRIDES.items() if over.get("hinge_forces")}
     assert set(HINGE_FORCES_TASKS) == hinged == {
         name for name in allowed if only_hinges(make_task(name).env.unwrapped.sys)}
+    planar = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_root")}
+    assert set(PLANAR_ROOT_TASKS) == planar == {"hopper", "walker2d"} == {
+        name for name in allowed if planar_roots(make_task(name).env.unwrapped.sys)}
+    rotary = {name for name, over in TASK_OVERRIDES.items() if over.get("rotary_joints")}
+    assert set(ROTARY_JOINTS_TASKS) == rotary == {"humanoid"} == {
+        name for name in allowed if rotary_joints(make_task(name).env.unwrapped.sys)}
     ild = get_method("ild")
     ant = build_config(ild, "ant", "cpu", {})
     assert ant.hand_adjoint and ant.hinge_forces and ant.lean_substeps and ant.num_envs == 32
@@ -383,5 +486,11 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     assert reacher.hand_adjoint is False and reacher.hinge_forces is False
     off = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "false"})
     assert off.hand_adjoint is False and off.hinge_forces is False
-    with pytest.raises(ValueError, match="--set hand_adjoint=false --set hinge_forces=false"):
-        build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"})
+    # --set hand_adjoint=false alone takes the task's hinge_forces with it (the method's
+    # `requires`, session 53); asked for beside it, hinge_forces is refused by name
+    alone = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"})
+    assert alone == off and alone.lean_substeps and not alone.planar_root
+    human = build_config(ild, "humanoid", "cpu", {"hand_adjoint": "false"})
+    assert not (human.hand_adjoint or human.hinge_forces or human.rotary_joints)
+    with pytest.raises(ValueError, match="hinge_forces is a piece of hand_adjoint"):
+        build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "true"})

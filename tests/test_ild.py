@@ -921,15 +921,16 @@ def test_speed_benchmark_runs_the_rows_asked_for():
 def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
     """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
     the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
-    hopper's lean substeps, hand-written VJPs and hinge forces (sessions 41, 50, 52),
+    hopper's lean substeps, hand-written VJPs, hinge forces and planar root (sessions 41,
+    50, 52, 53),
     pointmass's the `ild` row's own config, whose timing it then reports again rather than
     compiling the same update twice."""
     from methods.ild import benchmark
     acro = benchmark.task_config("acrobot", 8)
     assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
     assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
-    assert benchmark.task_config("hopper", 8) == ILDConfig(num_envs=8, lean_substeps=True,
-                                                           hand_adjoint=True, hinge_forces=True)
+    assert benchmark.task_config("hopper", 8) == ILDConfig(
+        num_envs=8, lean_substeps=True, hand_adjoint=True, hinge_forces=True, planar_root=True)
     assert benchmark.task_config("pointmass", 8) == ILDConfig(num_envs=8)
     compiled = []
     real = benchmark.make_update
@@ -1027,6 +1028,15 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
         assert r["apg_seconds"] == (0.5, 0.25)[r["round"]]
         assert r["over_apg"] == pytest.approx(r["apg_seconds"] / r["seconds"], rel=2e-3)
         assert 0 < r["seconds"] < 10
+        assert "over_forward" not in r
+    # --forward: the forward rollout timed in every round, each row's ratio from its round
+    calls.clear()
+    rows = paired.run("pointmass", ["chunk=2"], batch=4, rounds=2, repeats=3, forward=True)
+    assert calls == [1, 2, 3, 4] and len(rows) == 2
+    for r in rows:
+        assert 0 < r["forward_seconds"] < r["seconds"]  # no gradient: cheaper than an update
+        assert r["over_forward"] == pytest.approx(r["seconds"] / r["forward_seconds"],
+                                                  rel=2e-3)
     cfg = paired.parse_variant("substep_remat,chunk=4,truncation=5", 8)
     assert (cfg.substep_remat, cfg.chunk, cfg.truncation, cfg.num_envs) == (True, 4, 5, 8)
     from bench.plugins import ConfigError

@@ -107,6 +107,29 @@ def test_invalid_config_is_a_clear_error(overrides, match):
         build_config(get_method("bc"), "pointmass", None, overrides)
 
 
+def test_a_task_override_goes_with_the_field_it_requires():
+    """`MethodSpec.requires`: a field a task override turned on goes back to its default when
+    a later layer (preset or user) turns off the field it needs; one the user or a preset
+    sets stays (and meets the config's own check); a needed field left on keeps it."""
+    @dataclasses.dataclass(frozen=True)
+    class Cfg:
+        rewrite: bool = False
+        piece: bool = False
+        lr: float = 1.0
+
+    spec = MethodSpec(name="toy", train=lambda *a: None, config_cls=Cfg, uses=Uses(),
+                      presets={"off": {"rewrite": False}},
+                      task_overrides={"t": {"rewrite": True, "piece": True, "lr": 2.0}},
+                      requires={"piece": "rewrite"})
+    assert build_config(spec, "t") == Cfg(True, True, 2.0)
+    assert build_config(spec, "t", None, {"rewrite": "false"}) == Cfg(False, False, 2.0)
+    assert build_config(spec, "t", "off") == Cfg(False, False, 2.0)
+    assert build_config(spec, "t", None, {"rewrite": "false", "piece": "true"}
+                        ) == Cfg(False, True, 2.0)  # asked for: kept (no check in Cfg)
+    assert build_config(spec, "t", None, {"lr": "3"}) == Cfg(True, True, 3.0)
+    assert build_config(spec, "u", None, {"piece": "true"}) == Cfg(False, True, 1.0)
+
+
 def test_unknown_preset():
     with pytest.raises(ConfigError, match="no preset 'gpu'"):
         build_config(get_method("bc"), "pointmass", "gpu")

@@ -13,6 +13,9 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
+    # the spring substep's scene-specific pieces need its hand-written VJPs: turning
+    # hand_adjoint off (--set hand_adjoint=false) takes their task overrides with it
+    requires={f: "hand_adjoint" for f in ("hinge_forces", "planar_root", "rotary_joints")},
     version="5",  # 3: mask_after_done option; 4: observation normalizer frozen;
     # 5: substep_remat on by default (ant's remat override dropped)
 )

@@ -42,10 +42,11 @@ rows:
                substep with hand-written VJPs for six of its pieces: inverse inertia,
                joint forces and contact impulses moved to the links, integration,
                conversions to link and joint frames), and ild_xla, the same config without
-               it (XLA's reverse mode of brax's substep; without `hinge_forces` too, a piece
-               of it; the spring tasks train with `hand_adjoint` since session 50, so there
-               ild_hand is ild_task and ild_xla what they trained with before); brax's
-               spring tasks only, left out elsewhere
+               it (XLA's reverse mode of brax's substep; without its scene-specific pieces
+               too: `hinge_forces`, `planar_root`, `rotary_joints`; the spring tasks train
+               with `hand_adjoint` since session 50, so there ild_hand is ild_task and
+               ild_xla what they trained with before); brax's spring tasks only, left out
+               elsewhere
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (before session 31 every row ran so: ILD's default now reads the kernels
@@ -378,8 +379,8 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
     spring = hand_adjoint_refusal(task) is None
     hand = dataclasses.replace(trained, hand_adjoint=True) if spring else None  # ild_hand's
-    xla = (dataclasses.replace(trained, hand_adjoint=False, hinge_forces=False)  # ild_xla's
-           if spring else None)
+    # ild_xla's: --set hand_adjoint=false, which takes its pieces' task overrides with it
+    xla = task_config(task_name, batch, {"hand_adjoint": "false"}) if spring else None
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     lean_task, only = _rewritten_physics(task, lean_plain, "lean", only)

@@ -165,8 +165,26 @@ class ILDConfig:
     task,hinge_forces --apg-physics brax`, sessions 51-52) 1.085x faster on ant, 1.034x on
     walker2d, 1.03x on humanoid, 0.99-1.02x on hopper. Off in the class; since session 52
     the TASK_OVERRIDES of the tasks in `HINGE_FORCES_TASKS` turn it on (their 3- and
-    10-minute ILD cells re-run with it); there `--set hand_adjoint=false` needs `--set
-    hinge_forces=false` beside it."""
+    10-minute ILD cells re-run with it); there `--set hand_adjoint=false` turns it off too
+    (session 53: the method's `requires`)."""
+    planar_root: bool = False
+    """With `hand_adjoint`, on a scene whose 3-dof joints are all planar roots (two
+    unlimited slides and one unlimited hinge: hopper's and walker2d's root): their
+    constraint forces by `tasks.spring_adjoint.planar_root`, brax's `_three_dof` without
+    the terms such a joint multiplies by zero (the Euler angles, the limits whose infinite
+    bounds are never passed, the other rows' axes). The same values, in fewer operations
+    (hopper's update 12% fewer: `results/substep/scripts/loop_ops.py`): paired (`python -m
+    methods.ild.paired --variant task --variant task,planar_root --apg-physics brax`,
+    session 53) 1.087x faster on hopper, 1.039x on walker2d. Off in the class; since
+    session 53 the TASK_OVERRIDES of the tasks in `PLANAR_ROOT_TASKS` turn it on."""
+    rotary_joints: bool = False
+    """With `hand_adjoint`, on a scene whose 2- and 3-dof joints all only turn (humanoid's):
+    their constraint forces by `tasks.spring_adjoint.rotary_two` and `rotary_three`, brax's
+    `_two_dof` and `_three_dof` without the terms such joints multiply by zero (the slides'
+    projections, forces and limits, the pins and single-axis torques). The same values, in
+    fewer operations (humanoid's update 9% fewer): paired (`--variant task --variant
+    task,rotary_joints`, session 53) 1.125x faster on humanoid. Off in the class; since
+    session 53 the TASK_OVERRIDES of the tasks in `ROTARY_JOINTS_TASKS` turn it on."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -199,8 +217,13 @@ class ILDConfig:
              "them False"),
             (self.hand_adjoint or not self.hinge_forces,
              "hinge_forces is a piece of hand_adjoint's spring substep; set hand_adjoint "
-             "True or hinge_forces False (on the tasks in HINGE_FORCES_TASKS it is on by "
-             "task override: --set hand_adjoint=false --set hinge_forces=false)"),
+             "True or hinge_forces False"),
+            (self.hand_adjoint or not self.planar_root,
+             "planar_root is a piece of hand_adjoint's spring substep; set hand_adjoint "
+             "True or planar_root False"),
+            (self.hand_adjoint or not self.rotary_joints,
+             "rotary_joints is a piece of hand_adjoint's spring substep; set hand_adjoint "
+             "True or rotary_joints False"),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
@@ -312,3 +335,16 @@ _merge_overrides(HAND_ADJOINT_TASKS, hand_adjoint=True)
 # Session 52 re-ran these tasks' 3- and 10-minute ILD cells with it (results/JOURNAL.md).
 HINGE_FORCES_TASKS = HAND_ADJOINT_TASKS
 _merge_overrides(HINGE_FORCES_TASKS, hinge_forces=True)
+
+# The multi-dof joints' forces for the scene's kinds alone (session 53): hopper's and
+# walker2d's planar root (two unlimited slides and a hinge), humanoid's 2- and 3-dof joints
+# that only turn. The same values bit for bit in one call (tests/test_hand_adjoint.py), in
+# 12% (hopper, walker2d) and 9% (humanoid) fewer operations per update (python
+# results/substep/scripts/loop_ops.py T --variant task --variant task,planar_root); one core,
+# B = 32, paired against the same update with brax's functions
+# (results/hand_adjoint/paired_session53_*.csv): hopper 1.087x, walker2d 1.039x, humanoid
+# 1.125x. Session 53 re-ran these tasks' 3- and 10-minute ILD cells with them.
+PLANAR_ROOT_TASKS = ("hopper", "walker2d")
+_merge_overrides(PLANAR_ROOT_TASKS, planar_root=True)
+ROTARY_JOINTS_TASKS = ("humanoid",)
+_merge_overrides(ROTARY_JOINTS_TASKS, rotary_joints=True)

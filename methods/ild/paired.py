@@ -24,6 +24,14 @@ and the fields after it on top:
 
     python -m methods.ild.paired --task swimmer --variant task --variant task,chunk=4 \\
         --apg-physics brax
+
+`--forward` also times, in each round before the variants, the benchmark's `forward` row (a
+forward rollout of the same batch through brax's physics as shipped, no gradient), and each
+variant's row gets that round's `forward_seconds` and `over_forward` (its seconds per update
+over them): issue 4's update <= 3x forward, as a median over rounds that each time both
+within seconds of each other, not from two timings minutes apart:
+
+    python -m methods.ild.paired --task hopper --variant task --apg-physics brax --forward
 """
 from __future__ import annotations
 
@@ -38,7 +46,8 @@ from bench.plugins import ConfigError
 from bench.runner import speed_settings
 from methods.ild.benchmark import apg_epochs, reward_gradient_norm, speed_setup, task_config
 from methods.ild.config import ILDConfig
-from methods.ild.train import initial_state, make_chunk, make_update, rollout_physics
+from methods.ild.train import (initial_state, make_chunk, make_rollout_loss, make_update,
+                               rollout_physics)
 from tasks import make_task
 
 REWRITES = ("small_dots", "closed_form_adjoint", "lean_substeps")
@@ -105,8 +114,20 @@ def compiled_chunk(task, cfg: ILDConfig, setup):
     return chunk, state, n
 
 
+def compiled_forward(task, base: ILDConfig, setup):
+    """The benchmark's `forward` row's call (a forward rollout of `base.num_envs` envs through
+    `task`'s physics with ILD's loss, no gradient), compiled by one call before it returns:
+    (forward, params)."""
+    policy, goals, norm, params, k = setup
+    loss_fn = make_rollout_loss(task, policy, goals, norm, base)
+    init_keys = jax.random.split(k[2], base.num_envs)
+    forward = jax.jit(lambda p: loss_fn(p, k[3], init_keys)[0])
+    jax.block_until_ready(forward(params))
+    return forward, params
+
+
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
-        repeats: int = 8, apg_as_shipped: bool = False) -> list[dict]:
+        repeats: int = 8, apg_as_shipped: bool = False, forward: bool = False) -> list[dict]:
     base = ILDConfig(num_envs=batch)
     configs = {v: parse_variant(v, batch, task_name) for v in variants}
     physics = apg_physics(configs, base, brax=apg_as_shipped)
@@ -121,8 +142,15 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         chunk, state, n = compiled_chunk(task, cfg, setup)
         timed[v] = (chunk, state, n, -(-repeats // cfg.chunk))  # calls: >= repeats updates
     seconds = {v: [] for v in variants}
+    fwd = compiled_forward(task, base, setup) if forward else None
+    fwd_seconds = []
 
     def time_ild(_):
+        if fwd is not None:
+            t0 = time.perf_counter()
+            for _ in range(repeats):
+                jax.block_until_ready(fwd[0](fwd[1]))
+            fwd_seconds.append((time.perf_counter() - t0) / repeats)
         for v, (chunk, state, n, calls) in timed.items():
             t0 = time.perf_counter()
             for _ in range(calls):
@@ -136,6 +164,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
     sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
     apg_s = [steps / x for x in sps]
     ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
+    fwd_s = fwd_seconds[-len(apg_s):]
     settings = speed_settings()
     rows = []
     for v in variants:
@@ -144,12 +173,19 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
                          "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
                          "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
                          "apg_physics": physics,
+                         **({"forward_seconds": float(f"{fwd_s[r]:.4g}"),
+                             "over_forward": round(s / fwd_s[r], 3)} if forward else {}),
                          **settings})
     for v in variants:
         ratios = [a / s for s, a in zip(ild[v], apg_s)]
-        print(f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "
-              f"{statistics.median(apg_s):.4f}), over APG median {statistics.median(ratios):.3f} "
-              f"[{min(ratios):.3f}, {max(ratios):.3f}] over {len(ratios)} rounds", flush=True)
+        line = (f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "
+                f"{statistics.median(apg_s):.4f}), over APG median "
+                f"{statistics.median(ratios):.3f} [{min(ratios):.3f}, {max(ratios):.3f}]")
+        if forward:
+            over = [s / f for s, f in zip(ild[v], fwd_s)]
+            line += (f"; update / forward ({statistics.median(fwd_s):.4f} s) median "
+                     f"{statistics.median(over):.3f} [{min(over):.3f}, {max(over):.3f}]")
+        print(f"{line} over {len(ratios)} rounds", flush=True)
     return rows
 
 
@@ -166,6 +202,9 @@ def main(argv=None):
     p.add_argument("--apg-physics", choices=("auto", "brax"), default="auto",
                    help="auto: APG on the physics the variants rewrite (like with like); "
                         "brax: brax's APG as shipped, whatever the variants set")
+    p.add_argument("--forward", action="store_true",
+                   help="also time the forward rollout (the benchmark's forward row) in each "
+                        "round: every row gets that round's update / forward")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
     if min(a.batch, a.rounds, a.repeats) < 1:
@@ -173,7 +212,7 @@ def main(argv=None):
                 f"{a.repeats}")
     try:
         rows = run(a.task, a.variant, a.batch, a.rounds, a.repeats,
-                   apg_as_shipped=a.apg_physics == "brax")
+                   apg_as_shipped=a.apg_physics == "brax", forward=a.forward)
     except (ValueError, ConfigError) as e:
         p.error(str(e))
     if a.out:

@@ -216,7 +216,8 @@ def rollout_physics(task, config: ILDConfig):
         return with_closed_form_adjoint(task)
     if config.hand_adjoint:
         task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps,
-                                 hinges=config.hinge_forces)
+                                 hinges=config.hinge_forces, planar=config.planar_root,
+                                 rotary=config.rotary_joints)
     elif config.lean_substeps:
         task = with_lean_substeps(task, remat=config.substep_remat)
     elif config.substep_remat and has_substep_loop(task):

@@ -1,13 +1,13 @@
 """How many XLA operations ILD's update and the forward rollout execute, and what each costs
 on average (session 49).
 
-    python results/substep/scripts/op_count.py TASK [--variant
-        task,hand_adjoint=false,hinge_forces=false --variant task ...] [--batch 32]
-        [--calls 3] [--out CSV]
+    python results/substep/scripts/op_count.py TASK [--variant task,hand_adjoint=false
+        --variant task ...] [--batch 32] [--calls 3] [--out CSV]
 
 (Session 49 ran `--variant task --variant task,hand_adjoint`, the same two updates before
 `hand_adjoint` became the spring tasks' default in session 50; since then `task` includes it,
-and since session 52 `hinge_forces` too, which needs `hand_adjoint`.)
+and since sessions 52-53 its scene-specific pieces too (`hinge_forces`, `planar_root`,
+`rotary_joints`), whose task overrides `hand_adjoint=false` turns off with it.)
 
 For the forward rollout and its loss through brax's step as shipped (the benchmark's
 `forward`, the issue's yardstick) and for ILD's update under each `--variant` (named as
