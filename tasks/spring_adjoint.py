@@ -359,15 +359,22 @@ def joints_resolve(sys, state, tau: jax.Array, hinges: bool = False,
     return Force(ang=ang, vel=vel)
 
 
+def _dof_types(sys, types: str):
+    """A (dofs,) bool mask of the dofs whose joint's type is in `types` ('1', '23', ...), or
+    None where the dof axes are traced (not known while tracing)."""
+    if any(isinstance(x, jax.core.Tracer) for x in (sys.dof.motion.vel, sys.dof.motion.ang)):
+        return None
+    return np.array([t in types for t in sys.link_types for _ in range(QD_WIDTHS[t])], bool)
+
+
 def only_hinges(sys) -> bool:
     """Whether every 1-dof joint of `sys` is a hinge (rotates, does not slide), from its
     dof axes: where `hinge` may stand for brax's `_one_dof`. False where the axes are traced
     (not known while tracing)."""
-    motion = sys.dof.motion
-    if any(isinstance(x, jax.core.Tracer) for x in (motion.vel, motion.ang)):
+    one = _dof_types(sys, "1")
+    if one is None:
         return False
-    one = np.array([t == "1" for t in sys.link_types for _ in range(QD_WIDTHS[t])], bool)
-    vel, ang = np.asarray(motion.vel)[one], np.asarray(motion.ang)[one]
+    vel, ang = np.asarray(sys.dof.motion.vel)[one], np.asarray(sys.dof.motion.ang)[one]
     return bool(np.all(vel == 0) and np.all(np.any(ang != 0, axis=-1)))
 
 
@@ -388,10 +395,7 @@ def hinge(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
     ang = ang + tau * a0 - link.constraint_ang_damping * jd.ang
     if dof.limit is not None:
         lon, _ = math.normalize(jnp.cross(math.rotate(a2, j.rot), a0))
-        psi = math.signed_angle(a0, a1, lon)
-        limit_min, limit_max = dof.limit
-        dang = jnp.where(psi < limit_min, psi - limit_min, 0)
-        dang = jnp.where(psi > limit_max, psi - limit_max, dang)
+        dang = _limit_excess(math.signed_angle(a0, a1, lon), dof.limit)
         ang = ang - link.constraint_limit_stiffness * a0 * dang
     return Force(ang=ang, vel=vel)
 
@@ -402,11 +406,9 @@ def planar_roots(sys):
     (the slides' rows, the hinge's row) of each joint's three dofs, read from the system's
     dof axes and limits; None for any other scene, one without 3-dof joints, or one whose
     axes or limits are traced (not known while tracing)."""
-    leaves = (sys.dof.motion.vel, sys.dof.motion.ang, *(sys.dof.limit or ()))
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return None
-    three = np.array([t == "3" for t in sys.link_types for _ in range(QD_WIDTHS[t])], bool)
-    if not three.any():
+    three = _dof_types(sys, "3")
+    if three is None or not three.any() or any(
+            isinstance(x, jax.core.Tracer) for x in sys.dof.limit or ()):
         return None
     vel = np.asarray(sys.dof.motion.vel)[three].reshape(-1, 3, 3)
     ang = np.asarray(sys.dof.motion.ang)[three].reshape(-1, 3, 3)
@@ -450,11 +452,10 @@ def rotary_joints(sys) -> bool:
     its rows an axis of rotation, none a slide), as humanoid's: where `rotary_two` and
     `rotary_three` may stand for brax's `_two_dof` and `_three_dof`. False where the axes
     are traced (not known while tracing)."""
-    motion = sys.dof.motion
-    if any(isinstance(x, jax.core.Tracer) for x in (motion.vel, motion.ang)):
+    multi = _dof_types(sys, "23")
+    if multi is None:
         return False
-    multi = np.array([t in "23" for t in sys.link_types for _ in range(QD_WIDTHS[t])], bool)
-    vel, ang = np.asarray(motion.vel)[multi], np.asarray(motion.ang)[multi]
+    vel, ang = np.asarray(sys.dof.motion.vel)[multi], np.asarray(sys.dof.motion.ang)[multi]
     return bool(multi.any() and np.all(vel == 0) and np.all(np.any(ang != 0, axis=-1)))
 
 
