@@ -1000,6 +1000,44 @@ def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     assert rows.malloc_hugetlb.iloc[1] == 1
 
 
+def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(tmp_path,
+                                                                             capsys):
+    """methods.ild.paired's summary, on hand-made rows: medians over rounds of the seconds
+    and of the per-round ratios, their ranges, and update / forward from the fastest rounds
+    (fastest update over fastest forward, here from different rounds); rows without the
+    forward (NaN in a CSV) get no forward figures. `--summarize` reads an earlier run's CSV
+    and refuses a file that is not one, naming it."""
+    import pandas as pd
+    from methods.ild import paired
+    rows = [{"task": "hopper", "variant": "task", "round": i, "seconds": s, "apg_seconds": a,
+             "over_apg": round(a / s, 3), "forward_seconds": f, "over_forward": round(s / f, 3)}
+            for i, (s, a, f) in enumerate([(0.30, 0.60, 0.10), (0.20, 0.50, 0.08),
+                                           (0.25, 0.40, 0.05)])]
+    rows += [{"task": "hopper", "variant": "old", "round": 0, "seconds": 0.4,
+              "apg_seconds": 0.6, "over_apg": 1.5, "forward_seconds": float("nan"),
+              "over_forward": float("nan")}]
+    task, old = paired.summarize(rows)
+    assert (task["rounds"], task["seconds"], task["apg_seconds"]) == (3, 0.25, 0.5)
+    assert (task["over_apg"], task["over_apg_min"], task["over_apg_max"]) == (2.0, 1.6, 2.5)
+    assert (task["over_forward"], task["over_forward_min"], task["over_forward_max"]) == (
+        3.0, 2.5, 5.0)
+    assert task["forward_seconds"] == 0.08
+    assert task["fastest_over_forward"] == pytest.approx(0.20 / 0.05)
+    assert old["rounds"] == 1 and "over_forward" not in old and old["over_apg"] == 1.5
+    path = tmp_path / "paired.csv"
+    pd.DataFrame(rows).to_csv(path, index=False)
+    paired.main(["--summarize", str(path)])
+    out = capsys.readouterr().out.splitlines()
+    assert out == paired.summary_lines(rows) and "fastest rounds 4.000 over 3 rounds" in out[0]
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(SystemExit):
+        paired.main(["--summarize", str(tmp_path / "other.csv")])
+    assert "other.csv: not rows of methods.ild.paired" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        paired.main(["--task", "hopper"])
+    assert "--variant is required" in capsys.readouterr().err
+
+
 def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     """methods.ild.paired: every variant is timed once between two of APG's epochs and
     each round's ratio is APG's seconds per update over the variant's, from that round; APG's

@@ -32,6 +32,13 @@ over them): issue 4's update <= 3x forward, as a median over rounds that each ti
 within seconds of each other, not from two timings minutes apart:
 
     python -m methods.ild.paired --task hopper --variant task --apg-physics brax --forward
+
+The summary also gives update / forward from the fastest rounds (the fastest update over
+the fastest forward): noise only adds time, and on this machine the per-round ratios of one
+hopper run spread over 3.0-3.9x. `--summarize CSV ...` prints the summary of rows an
+earlier run appended (`--out`), for rows written before it existed too:
+
+    python -m methods.ild.paired --summarize results/hand_adjoint/paired_session53_*.csv
 """
 from __future__ import annotations
 
@@ -176,17 +183,55 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
                          **({"forward_seconds": float(f"{fwd_s[r]:.4g}"),
                              "over_forward": round(s / fwd_s[r], 3)} if forward else {}),
                          **settings})
-    for v in variants:
-        ratios = [a / s for s, a in zip(ild[v], apg_s)]
-        line = (f"{task_name} {v}: {statistics.median(ild[v]):.4f} s/update (APG "
-                f"{statistics.median(apg_s):.4f}), over APG median "
-                f"{statistics.median(ratios):.3f} [{min(ratios):.3f}, {max(ratios):.3f}]")
-        if forward:
-            over = [s / f for s, f in zip(ild[v], fwd_s)]
-            line += (f"; update / forward ({statistics.median(fwd_s):.4f} s) median "
-                     f"{statistics.median(over):.3f} [{min(over):.3f}, {max(over):.3f}]")
-        print(f"{line} over {len(ratios)} rounds", flush=True)
+    for line in summary_lines(rows):
+        print(line, flush=True)
     return rows
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Per task and variant of paired rows (this run's or a CSV's): the rounds, the median
+    seconds per update and APG's, over APG as median and range of the per-round ratios
+    and, where the forward was timed, update / forward the same way and `fastest_over_forward`:
+    the fastest round's update over the fastest round's forward. Noise on a shared machine
+    only adds time, so the fastest rounds give a second estimate, free of what one slow
+    side adds to a round's ratio (session 54: hopper's three runs 3.02-3.31x against
+    medians of 2.97-3.69x; ant's two 3.21x and 3.51x against 3.13x and 3.31x)."""
+    groups = {}
+    for r in rows:
+        groups.setdefault((r["task"], r["variant"]), []).append(r)
+    out = []
+    for (task, variant), rs in groups.items():
+        secs = [r["seconds"] for r in rs]
+        apg = [r["over_apg"] for r in rs]
+        row = {"task": task, "variant": variant, "rounds": len(rs),
+               "seconds": statistics.median(secs),
+               "apg_seconds": statistics.median(r["apg_seconds"] for r in rs),
+               "over_apg": statistics.median(apg), "over_apg_min": min(apg),
+               "over_apg_max": max(apg)}
+        fwd = [r.get("forward_seconds") for r in rs]
+        if all(f == f and f is not None for f in fwd):  # NaN: a CSV row timed without it
+            over = [r["over_forward"] for r in rs]
+            row.update(forward_seconds=statistics.median(fwd),
+                       over_forward=statistics.median(over), over_forward_min=min(over),
+                       over_forward_max=max(over), fastest_over_forward=min(secs) / min(fwd))
+        out.append(row)
+    return out
+
+
+def summary_lines(rows: list[dict]) -> list[str]:
+    """One printed line per task and variant of `summarize(rows)`."""
+    lines = []
+    for s in summarize(rows):
+        line = (f"{s['task']} {s['variant']}: {s['seconds']:.4f} s/update (APG "
+                f"{s['apg_seconds']:.4f}), over APG median {s['over_apg']:.3f} "
+                f"[{s['over_apg_min']:.3f}, {s['over_apg_max']:.3f}]")
+        if "over_forward" in s:
+            line += (f"; update / forward ({s['forward_seconds']:.4f} s) median "
+                     f"{s['over_forward']:.3f} [{s['over_forward_min']:.3f}, "
+                     f"{s['over_forward_max']:.3f}], fastest rounds "
+                     f"{s['fastest_over_forward']:.3f}")
+        lines.append(f"{line} over {s['rounds']} rounds")
+    return lines
 
 
 def main(argv=None):
@@ -196,7 +241,9 @@ def main(argv=None):
     p.add_argument("--rounds", type=int, default=6)
     p.add_argument("--repeats", type=int, default=8, help="updates per APG epoch and per "
                    "ILD block")
-    p.add_argument("--variant", action="append", required=True,
+    p.add_argument("--summarize", nargs="+", metavar="CSV", default=None,
+                   help="print the summary of rows an earlier run wrote (--out) and exit")
+    p.add_argument("--variant", action="append", default=None,
                    help="comma-separated ILDConfig fields; a leading 'task' starts from the "
                         "task's own config (its TASK_OVERRIDES)")
     p.add_argument("--apg-physics", choices=("auto", "brax"), default="auto",
@@ -207,6 +254,20 @@ def main(argv=None):
                         "round: every row gets that round's update / forward")
     p.add_argument("--out", default=None, help="append rows to this CSV")
     a = p.parse_args(argv)
+    if a.summarize:
+        import pandas as pd
+        for path in a.summarize:
+            try:
+                rows = pd.read_csv(path).to_dict("records")
+            except (OSError, ValueError) as e:
+                p.error(f"--summarize {path}: {e}")
+            if not rows or not {"task", "variant", "seconds", "apg_seconds",
+                                "over_apg"} <= set(rows[0]):
+                p.error(f"--summarize {path}: not rows of methods.ild.paired (--out)")
+            print("\n".join(summary_lines(rows)))
+        return
+    if not a.variant:
+        p.error("--variant is required (one or more), unless --summarize")
     if min(a.batch, a.rounds, a.repeats) < 1:
         p.error(f"--batch, --rounds and --repeats must be >= 1, got {a.batch}, {a.rounds}, "
                 f"{a.repeats}")
