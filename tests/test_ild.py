@@ -751,6 +751,7 @@ class _LossLog:
         return None, None
 
 
+@pytest.mark.slow  # 169 s in session 54's run, the longest default test: CI's time
 def test_truncated_bptt_climbs_inverted_pendulums_loss_and_full_bptt_descends_it():
     """Why inverted_pendulum trains at truncation 128 (methods/ild/config.py), by training:
     40 ILD updates from the same BC warm start (B = 16, one update per call). At truncation
