@@ -1,6 +1,6 @@
 """ild: Imitation Learning via Differentiable Physics (the paper's method)."""
 from bench.api import MethodSpec, Uses
-from methods.ild.config import PRESETS, TASK_OVERRIDES, ILDConfig
+from methods.ild.config import HAND_ADJOINT_PIECES, PRESETS, TASK_OVERRIDES, ILDConfig
 from methods.ild.train import train
 
 METHOD = MethodSpec(
@@ -15,7 +15,7 @@ METHOD = MethodSpec(
     task_overrides=TASK_OVERRIDES,
     # the spring substep's scene-specific pieces need its hand-written VJPs: turning
     # hand_adjoint off (--set hand_adjoint=false) takes their task overrides with it
-    requires={f: "hand_adjoint" for f in ("hinge_forces", "planar_root", "rotary_joints")},
+    requires={f: "hand_adjoint" for f in HAND_ADJOINT_PIECES},
     version="5",  # 3: mask_after_done option; 4: observation normalizer frozen;
     # 5: substep_remat on by default (ant's remat override dropped)
 )

@@ -10,6 +10,11 @@ SCHEDULES = ("linear", "constant", "budget")
 NORM_SCOPES = ("env", "batch")
 
 
+HAND_ADJOINT_PIECES = ("hinge_forces", "planar_root", "rotary_joints")
+"""ILDConfig fields that are pieces of `hand_adjoint`'s spring substep: each needs it on
+(the config's check; the method's `requires`)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class ILDConfig:
     hidden: tuple[int, ...] = (512, 256)
@@ -215,15 +220,9 @@ class ILDConfig:
             (not (self.closed_form_adjoint and self.lean_substeps),
              "closed_form_adjoint and lean_substeps both rewrite the physics step; set one of "
              "them False"),
-            (self.hand_adjoint or not self.hinge_forces,
-             "hinge_forces is a piece of hand_adjoint's spring substep; set hand_adjoint "
-             "True or hinge_forces False"),
-            (self.hand_adjoint or not self.planar_root,
-             "planar_root is a piece of hand_adjoint's spring substep; set hand_adjoint "
-             "True or planar_root False"),
-            (self.hand_adjoint or not self.rotary_joints,
-             "rotary_joints is a piece of hand_adjoint's spring substep; set hand_adjoint "
-             "True or rotary_joints False"),
+            *((self.hand_adjoint or not getattr(self, piece),
+               f"{piece} is a piece of hand_adjoint's spring substep; set hand_adjoint "
+               f"True or {piece} False") for piece in HAND_ADJOINT_PIECES),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
