@@ -56,7 +56,7 @@ def _step_tangent(env, a):
     """The tangent of one step's observation along all-ones action directions, from reset
     (one jitted forward-mode step: what the view's physics gradient gate has to zero)."""
     s0 = env.reset(jax.random.PRNGKey(0))
-    return jax.jit(lambda a: jax.jvp(lambda a: env.step(s0, a).obs, (a,),
+    return jax.jit(lambda a: jax.jvp(lambda x: env.step(s0, x).obs, (a,),
                                      (jnp.ones_like(a),))[1])(a)
 
 
