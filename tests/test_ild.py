@@ -479,6 +479,24 @@ def test_speed_benchmark_reports_every_part_and_its_ratios():
         by["chamfer"]["temp_mib"] / by["ild"]["temp_mib"], rel=0.02, abs=2e-3)
 
 
+def test_benchmark_set_times_the_task_config_with_fields_on_top(capsys):
+    """`--set FIELD=VALUE` reaches the update the ild_task row times, under a name that
+    says so: with remat=true the row keeps no backward residuals (as ild_remat, above);
+    a field ILDConfig lacks, a bad value or a missing '=' is a usage error naming it."""
+    from methods.ild.benchmark import main, run
+    plain, = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=1, only=("ild_task",))
+    remat, = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=1, only=("ild_task",),
+                 overrides={"remat": "true", "truncation": "128"})
+    assert (plain["what"], remat["what"]) == ("ild_task", "ild_task:remat=true;truncation=128")
+    assert remat["temp_mib"] < 0.1 * plain["temp_mib"]
+    for bad, says in ((["bogus=1"], "no config field 'bogus'"), (["remat=maybe"], "expects bool"),
+                      (["remat"], "--set takes FIELD=VALUE")):
+        with pytest.raises(SystemExit):
+            main(["--task", "pointmass", "--rows", "ild_task", "--no-apg",
+                  *[x for b in bad for x in ("--set", b)]])
+        assert says in capsys.readouterr().err
+
+
 def test_benchmark_memory_is_xla_working_memory():
     """temp_bytes is the compiled function's scratch: an (N, N) matmul result that is then
     summed must be materialized once (N * N float32 = 360,000 bytes for N = 300), while its

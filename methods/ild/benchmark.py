@@ -14,7 +14,10 @@ rows:
                form with full BPTT, swimmer's with small dots, inverted_pendulum's with full
                BPTT (since session 39), the spring and positional tasks' with lean substeps
                (session 41), the spring tasks' with `hand_adjoint` too (session 50); where a
-               task has none, `ild`'s timing again
+               task has none, `ild`'s timing again. `--set FIELD=VALUE` (repeatable) puts
+               ILDConfig fields on top, for this row (then named ild_task:FIELD=VALUE;...)
+               and ild_hand's, e.g. `--set hinge_forces=false` times the update without
+               one piece of the task's hand-written adjoint
   ild_plain    the same without substep remat (`--set substep_remat=false`: ILD's default
                before version 5); the remat, dots and untransposed rows below start from it
   ild_no_gn    the default update without per-step gradient normalization
@@ -93,6 +96,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from bench.plugins import ConfigError
 from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
@@ -341,7 +345,9 @@ def speed_setup(task, config: ILDConfig):
 
 
 def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
-        chunk: int = 4, only: tuple[str, ...] = ROWS) -> list[dict]:
+        chunk: int = 4, only: tuple[str, ...] = ROWS, overrides=None) -> list[dict]:
+    """The rows of `only` (ROWS' groups); `overrides` ({field: text}, `--set`) on top of the
+    task's config: the ild_task row (named ild_task:FIELD=VALUE;...) and ild_hand's."""
     check_rows(only)
     only = expand_rows(only)
     task = make_task(task_name)
@@ -376,11 +382,14 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     closed = dataclasses.replace(base, closed_form_adjoint=True)
     lean = dataclasses.replace(base, lean_substeps=True)
     lean_plain = dataclasses.replace(plain, lean_substeps=True)  # forward_lean's, apg_lean's
-    trained = task_config(task_name, batch)  # the ild_task row's: as the task trains
+    trained = task_config(task_name, batch, overrides)  # the ild_task row's: as it trains
     spring = hand_adjoint_refusal(task) is None
     hand = dataclasses.replace(trained, hand_adjoint=True) if spring else None  # ild_hand's
     # ild_xla's: --set hand_adjoint=false, which takes its pieces' task overrides with it
-    xla = task_config(task_name, batch, {"hand_adjoint": "false"}) if spring else None
+    xla = (task_config(task_name, batch, {**(overrides or {}), "hand_adjoint": "false"})
+           if spring else None)
+    task_row = "ild_task" + (":" + ";".join(f"{f}={v}" for f, v in overrides.items())
+                             if overrides else "")
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
     closed_task, only = _rewritten_physics(task, closed, "closed_form", only)
     lean_task, only = _rewritten_physics(task, lean_plain, "lean", only)
@@ -392,7 +401,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
-            ("ild", "ild", base, 1), ("ild_task", "ild_task", trained, 1),
+            ("ild", "ild", base, 1), ("ild_task", task_row, trained, 1),
             ("ild_plain", "ild_plain", plain, 1),
             ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
@@ -542,6 +551,9 @@ def main(argv=None):
                         f"{','.join(CLOSED_FORM_ROWS)}, 'lean' is {','.join(LEAN_ROWS)}, each "
                         "also alone)")
     p.add_argument("--out", default=None, help="append rows to this CSV")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="an ILDConfig field on top of the task's config, for the ild_task "
+                        "row (then named ild_task:FIELD=VALUE) and ild_hand's; repeatable")
     p.add_argument("--time-lock", default=None, metavar="PATH",
                    help="hold an exclusive lock on PATH around each timed section: several "
                         "processes on one accelerator then compile side by side and are "
@@ -556,7 +568,15 @@ def main(argv=None):
         check_rows(only)
     except ValueError as e:
         p.error(f"--rows: {e}")
-    rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only)
+    bad = [x for x in a.set if "=" not in x]
+    if bad:
+        p.error(f"--set takes FIELD=VALUE, got {bad}")
+    overrides = dict(x.split("=", 1) for x in a.set)
+    try:
+        task_config(a.task, a.batch, overrides)
+    except (ConfigError, ValueError) as e:
+        p.error(f"--set: {e}")
+    rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only, overrides)
     if a.out:
         from bench.report import append_csv
         from bench.runner import speed_settings

@@ -88,11 +88,37 @@
 # the ild_hand rows set it beside ild_xla, the same lean update through XLA's reverse mode
 # (what they trained with before). Not yet run on a GPU; one call would be
 #   T=300 APG_TASKS=none ILD_TASKS="hopper walker2d ant humanoid" ILD_ROWS=forward,ild_hand
+#
+# Session 56 (ILD_BATCHES): each ILD task runs once per batch in ILD_BATCHES (default B),
+# one process each, tagged ild_<task>_b<batch> when there are several, e.g.
+#   T=330 APG_TASKS=none ILD_TASKS="hopper walker2d ant humanoid"
+#     ILD_ROWS=forward,forward_lean,ild_hand ILD_BATCHES="360 2048" bash ...
+# ILD_SETS: each entry TASK:FIELD=VALUE[+FIELD=VALUE...] adds one ILD process timing the
+# ild_task row with those fields on top (the benchmark's --set; named ild_task:FIELD=VALUE)
+# at B, tagged ild_<task>_set<i>, e.g. ILD_SETS="ant:hinge_forces=false".
+# Session 56 ran two calls (results/gpu/speed_session56, results/JOURNAL.md):
+#   T=330 APG_TASKS=none ILD_TASKS="hopper walker2d ant humanoid"
+#     ILD_ROWS=forward,forward_lean,ild_hand ILD_BATCHES="360 2048"        (296 s)
+#   T=290 APG_TASKS=none ILD_TASKS="ant humanoid" ILD_ROWS=forward_lean,ild_hand
+#     ILD_SETS="ant:hinge_forces=false humanoid:hinge_forces=false
+#     humanoid:rotary_joints=false humanoid:hinge_forces=false+rotary_joints=false
+#     ant:substep_remat=false humanoid:substep_remat=false hopper:substep_remat=false" (266 s)
+# Ant's ild_hand / ild_xla flipped between the two calls (0.532 / 0.434 s, then 0.470 /
+# 0.573 s) while its forward's working memory changed by 32 MiB between them (95.6 / 63.6
+# MiB): the same program compiled to other kernels, likely XLA's GPU autotuner timing GEMM
+# candidates while 8-9 processes compiled beside it. ALONE=1 starts each ILD process after
+# the one before ends (nothing compiles beside a timed section or an autotuning compile;
+# slower: every compile in series), the next check of ant and humanoid, e.g.
+#   T=280 ALONE=1 APG_TASKS=none ILD_TASKS="ant humanoid" ILD_ROWS=forward_lean,ild_hand
+# (about 6 minutes: session 56's compiles took 15-30 s per forward, 50-120 s per update).
+# The tree that travels must stay under 64 MiB with .whl: session 56 carried mujoco_mjx's
+# wheel without its test_data/ folder (7.3 -> 0.7 MB; its RECORD lines for it dropped too).
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
 CLOSED_FORM_TASKS=${CLOSED_FORM_TASKS:-} LEAN_TASKS=${LEAN_TASKS:-}
 ILD_TASKS=${ILD_TASKS:-$TASKS} APG_TASKS=${APG_TASKS:-$TASKS} APG_GROUP=${APG_GROUP:-2}
+ILD_BATCHES=${ILD_BATCHES:-$B}
 [ "$ILD_TASKS" = none ] && ILD_TASKS=
 [ "$APG_TASKS" = none ] && APG_TASKS=
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -104,8 +130,8 @@ nvidia-smi --query-gpu=name,driver_version,memory.total,utilization.gpu --format
 python3 -c "import jax, brax; print('jax', jax.__version__, jax.devices(), 'brax', \
 brax.__version__)" >> /tmp/speed/machine.txt 2>&1 || { cat /tmp/speed/machine.txt; exit 1; }
 cat /tmp/speed/machine.txt
-bm() { tag=$1; shift; timeout $T python3 -m methods.ild.benchmark --batch $B --repeats $R \
-    --chunk 1 --time-lock /tmp/speed/lock --out /tmp/speed/$tag.csv "$@" \
+bm() { tag=$1; shift; timeout $T python3 -m methods.ild.benchmark --batch ${BB:-$B} \
+    --repeats $R --chunk 1 --time-lock /tmp/speed/lock --out /tmp/speed/$tag.csv "$@" \
     > /tmp/speed/$tag.log 2>&1; echo "$tag exit $?"; }
 pack() { [ -n "$OUT" ] && tar czf $OUT/.speed_logs.tgz -C /tmp speed \
     && mv $OUT/.speed_logs.tgz $OUT/speed_logs.tgz; }
@@ -125,7 +151,11 @@ for phase in ild apg; do
       rows=$ILD_ROWS; [ $dots = yes ] && rows=$rows,forward_dots,ild_substep_dots
       [ $cf = yes ] && rows=$rows,ild_closed_form
       [ $lean = yes ] && rows=$rows,forward_lean,ild_lean
-      bm ild_$t --task $t --rows $rows --no-apg & pids+=($!)
+      for b in $ILD_BATCHES; do  # BB=b for this call alone (APG's processes run at B)
+        tag=ild_$t; [ "$ILD_BATCHES" != "$B" ] && tag=ild_${t}_b$b
+        BB=$b bm $tag --task $t --rows $rows --no-apg & pids+=($!)
+        [ -n "$ALONE" ] && wait $!
+      done
     else
       bm apg_$t --task $t --rows apg & pids+=($!) group+=($!)
       [ $dots = yes ] && { bm apg_dots_$t --task $t --rows apg_dots & pids+=($!) group+=($!); }
@@ -138,6 +168,12 @@ for phase in ild apg; do
       # warm-up running beside it
       [ ${#group[@]} -ge $APG_GROUP ] && { wait "${group[@]}"; group=(); }
     fi
+  done
+  i=0
+  for e in $([ $phase = ild ] && echo $ILD_SETS); do  # TASK:FIELD=VALUE[+FIELD=VALUE...]
+    sets=(); for f in $(echo ${e#*:} | tr + ' '); do sets+=(--set $f); done
+    i=$((i+1)); bm ild_${e%%:*}_set$i --task ${e%%:*} --rows ild_task "${sets[@]}" --no-apg &
+    pids+=($!); [ -n "$ALONE" ] && wait $!
   done
   [ -n "$TOGETHER" ] && [ $phase = ild ] && continue  # one phase: all processes at once
   [ ${#pids[@]} -gt 0 ] && wait "${pids[@]}"  # a bare wait would wait for the watcher
