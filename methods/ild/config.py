@@ -157,10 +157,10 @@ class ILDConfig:
     --apg-physics brax`, session 48) the update ran 1.46x, 1.47x, 1.48x and 1.32x faster on
     hopper, walker2d, ant and humanoid, 1.76-2.07x brax's APG; update / forward 3.48-3.55x
     instead of 4.61-5.44x (README ILD speed); the pieces still in XLA's reverse mode could
-    add at most 1.42-1.45x (session 49). On one H200 (session 56, results/JOURNAL.md) it is
-    1.23-1.24x faster on hopper and walker2d at B = 360, 0.92x on humanoid, undecided on ant,
-    and 0.71-0.99x at B = 2048: a CPU choice first. Tasks not on brax's spring backend
-    refuse it.
+    add at most 1.42-1.45x (session 49). On one core at the paper's batch 1.36-1.49x (session
+    56); on one H200 (session 56, results/JOURNAL.md) 1.23-1.24x faster on hopper and
+    walker2d at B = 360, 0.92x on humanoid, undecided on ant, and 0.71-0.99x at B = 2048: a
+    CPU choice first. Tasks not on brax's spring backend refuse it.
     Off in the class; since session 50 the TASK_OVERRIDES of the tasks in
     `HAND_ADJOINT_TASKS` turn it on (their 3- and 10-minute ILD cells re-run with it)."""
     hinge_forces: bool = False
