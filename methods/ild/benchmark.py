@@ -98,7 +98,7 @@ import jax.numpy as jnp
 
 from bench.plugins import ConfigError
 from methods.common.policy import ObsNorm, TanhGaussianPolicy
-from methods.ild.config import ILDConfig
+from methods.ild.config import HAND_ADJOINT_PIECES, ILDConfig
 from methods.ild.losses import chamfer_alpha
 from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
                                make_update, rollout_physics)
@@ -386,8 +386,9 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     spring = hand_adjoint_refusal(task) is None
     hand = dataclasses.replace(trained, hand_adjoint=True) if spring else None  # ild_hand's
     # ild_xla's: --set hand_adjoint=false, which takes its pieces' task overrides with it
-    xla = (task_config(task_name, batch, {**(overrides or {}), "hand_adjoint": "false"})
-           if spring else None)
+    xla = (task_config(task_name, batch, {**(overrides or {}), "hand_adjoint": "false",
+                                          **{f: "false" for f in HAND_ADJOINT_PIECES}})
+           if spring else None)  # a piece `--set` turns on goes with hand_adjoint too
     task_row = "ild_task" + (":" + ";".join(f"{f}={v}" for f, v in overrides.items())
                              if overrides else "")
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
