@@ -1,0 +1,102 @@
+"""Where ILD's whole update spends its time against the forward rollout's, by XLA operation
+(session 56): the task's update as it trains (`task_config`, one update per call) and the
+benchmark's `forward` row, each traced over 5 calls under `jax.profiler` (CPU):
+
+    python results/substep/scripts/profile_update.py hopper [--batch 32] [--top 15]
+
+Prints seconds per call without the profiler first (min over 3 rounds of 10 calls), then per
+program the op events per call, the top operation kinds (the name without its number) and
+the top single operations with their output shape from the optimized HLO. The profiler's
+per-operation overhead inflates the totals (compare shares), and at this size its
+durations are not what an operation costs without it (session 51).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import re
+import tempfile
+import time
+
+import jax
+
+from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.config import ILDConfig
+from methods.ild.paired import compiled_chunk, compiled_forward
+from tasks import make_task
+
+
+def op_events(run) -> tuple[collections.Counter, collections.Counter]:
+    """(nanoseconds, events) by operation name (number kept) recorded by XLA's CPU runtime
+    threads while `run()` runs under `jax.profiler.trace`, the executor's own left out."""
+    time_ns, count = collections.Counter(), collections.Counter()
+    with tempfile.TemporaryDirectory() as d:
+        with jax.profiler.trace(d):
+            run()
+        data = jax.profiler.ProfileData.from_file(
+            glob.glob(d + "/**/*.xplane.pb", recursive=True)[0])
+        for plane in data.planes:
+            for line in plane.lines:
+                if "XLA" not in line.name:
+                    continue
+                for ev in line.events:
+                    if not ev.name.startswith("ThunkExecutor"):
+                        time_ns[ev.name] += ev.duration_ns
+                        count[ev.name] += 1
+    return time_ns, count
+
+
+def seconds(f, calls: int = 10, rounds: int = 3) -> float:
+    jax.block_until_ready(f())
+    best = float("inf")
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            jax.block_until_ready(f())
+        best = min(best, (time.perf_counter() - t0) / calls)
+    return best
+
+
+def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
+    time_ns, count = op_events(lambda: [jax.block_until_ready(f()) for _ in range(calls)])
+    total = sum(time_ns.values())
+    kinds, kind_count = collections.Counter(), collections.Counter()
+    for name, ns in time_ns.items():
+        kinds[re.sub(r"\.\d+$", "", name)] += ns
+        kind_count[re.sub(r"\.\d+$", "", name)] += count[name]
+    print(f"== {label}: {total / calls / 1e6:.1f} ms per call profiled, "
+          f"{sum(count.values()) // calls} op events per call")
+    print("  by kind:")
+    for k, ns in kinds.most_common(top):
+        print(f"    {k:42s} {ns / calls / 1e3:9.1f} us {100 * ns / total:5.1f}% "
+              f"x{kind_count[k] // calls}")
+    print("  single operations:")
+    for name, ns in time_ns.most_common(top):
+        m = re.search(r"\n\s*(?:ROOT )?%" + re.escape(name) + r" = (\S+)", hlo)
+        print(f"    {name[:42]:42s} {ns / calls / 1e3:9.1f} us {100 * ns / total:5.1f}% "
+              f"x{count[name] // calls:<5d} {m.group(1) if m else ''}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser()
+    p.add_argument("task")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--top", type=int, default=15)
+    a = p.parse_args(argv)
+    task = make_task(a.task)
+    base = ILDConfig(num_envs=a.batch)
+    setup = speed_setup(task, base)
+    chunk, state, n = compiled_chunk(task, task_config(a.task, a.batch), setup)
+    forward, params = compiled_forward(task, base, setup)
+    update_s, forward_s = seconds(lambda: chunk(state, n)), seconds(lambda: forward(params))
+    print(f"{a.task}, B = {a.batch}: update {update_s:.4f} s, forward {forward_s:.4f} s, "
+          f"update / forward {update_s / forward_s:.2f}x (unprofiled)")
+    report("update", lambda: chunk(state, n), chunk.lower(state, n).compile().as_text(),
+           a.top)
+    report("forward", lambda: forward(params), forward.lower(params).compile().as_text(),
+           a.top)
+
+
+if __name__ == "__main__":
+    main()
