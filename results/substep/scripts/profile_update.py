@@ -8,15 +8,14 @@ Prints seconds per call without the profiler first (min over 3 rounds of 10 call
 program the op events per call, the top operation kinds (the name without its number) and
 the top single operations with their output shape from the optimized HLO. The profiler's
 per-operation overhead inflates the totals (compare shares), and at this size its
-durations are not what an operation costs without it (session 51).
+durations are not what an operation costs without it (session 51). Runs under glibc's
+huge-page tunable, as the benchmark does (bench.malloc; ILDBENCH_HUGEPAGES=0: without).
 """
 from __future__ import annotations
 
 import argparse
 import collections
-import glob
 import re
-import tempfile
 import time
 
 import jax
@@ -25,26 +24,7 @@ from methods.ild.benchmark import speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.paired import compiled_chunk, compiled_forward
 from tasks import make_task
-
-
-def op_events(run) -> tuple[collections.Counter, collections.Counter]:
-    """(nanoseconds, events) by operation name (number kept) recorded by XLA's CPU runtime
-    threads while `run()` runs under `jax.profiler.trace`, the executor's own left out."""
-    time_ns, count = collections.Counter(), collections.Counter()
-    with tempfile.TemporaryDirectory() as d:
-        with jax.profiler.trace(d):
-            run()
-        data = jax.profiler.ProfileData.from_file(
-            glob.glob(d + "/**/*.xplane.pb", recursive=True)[0])
-        for plane in data.planes:
-            for line in plane.lines:
-                if "XLA" not in line.name:
-                    continue
-                for ev in line.events:
-                    if not ev.name.startswith("ThunkExecutor"):
-                        time_ns[ev.name] += ev.duration_ns
-                        count[ev.name] += 1
-    return time_ns, count
+from timing import xla_op_events
 
 
 def seconds(f, calls: int = 10, rounds: int = 3) -> float:
@@ -59,7 +39,8 @@ def seconds(f, calls: int = 10, rounds: int = 3) -> float:
 
 
 def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
-    time_ns, count = op_events(lambda: [jax.block_until_ready(f()) for _ in range(calls)])
+    time_ns, count = xla_op_events(lambda: [jax.block_until_ready(f()) for _ in range(calls)],
+                                   by_name=True)
     total = sum(time_ns.values())
     kinds, kind_count = collections.Counter(), collections.Counter()
     for name, ns in time_ns.items():
@@ -99,4 +80,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    from bench.malloc import reexec_with_hugepages
+    reexec_with_hugepages()  # glibc's huge-page tunable, as `ildbench` and the benchmark run
     main()

@@ -25,10 +25,11 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
     return best
 
 
-def xla_op_events(run, skip=("ThunkExecutor",)):
-    """(nanoseconds, events) by operation kind (the event's name without its number) that
-    XLA's CPU runtime threads record while `run()` runs under `jax.profiler.trace`; events
-    whose names start with one of `skip` are left out (the executor's own by default)."""
+def xla_op_events(run, skip=("ThunkExecutor",), by_name: bool = False):
+    """(nanoseconds, events) by operation kind (the event's name without its number; with
+    `by_name`, by the name itself: one entry per operation) that XLA's CPU runtime threads
+    record while `run()` runs under `jax.profiler.trace`; events whose names start with one
+    of `skip` are left out (the executor's own by default)."""
     time_ns, count = collections.Counter(), collections.Counter()
     with tempfile.TemporaryDirectory() as d:
         with jax.profiler.trace(d):
@@ -42,7 +43,7 @@ def xla_op_events(run, skip=("ThunkExecutor",)):
                 for ev in line.events:
                     if ev.name.startswith(skip):
                         continue
-                    kind = re.sub(r"\.\d+$", "", ev.name)
+                    kind = ev.name if by_name else re.sub(r"\.\d+$", "", ev.name)
                     time_ns[kind] += ev.duration_ns
                     count[kind] += 1
     return time_ns, count
