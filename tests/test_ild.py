@@ -490,7 +490,7 @@ def test_benchmark_set_times_the_task_config_with_fields_on_top(capsys):
     assert (plain["what"], remat["what"]) == ("ild_task", "ild_task:remat=true;truncation=128")
     assert remat["temp_mib"] < 0.1 * plain["temp_mib"]
     for bad, says in ((["bogus=1"], "no config field 'bogus'"), (["remat=maybe"], "expects bool"),
-                      (["remat"], "--set takes FIELD=VALUE")):
+                      (["remat"], "--set expects key=value, got 'remat'")):
         with pytest.raises(SystemExit):
             main(["--task", "pointmass", "--rows", "ild_task", "--no-apg",
                   *[x for b in bad for x in ("--set", b)]])

@@ -569,11 +569,9 @@ def main(argv=None):
         check_rows(only)
     except ValueError as e:
         p.error(f"--rows: {e}")
-    bad = [x for x in a.set if "=" not in x]
-    if bad:
-        p.error(f"--set takes FIELD=VALUE, got {bad}")
-    overrides = dict(x.split("=", 1) for x in a.set)
+    from bench.cli import _overrides  # ildbench's own --set parser
     try:
+        overrides = _overrides(a.set)
         task_config(a.task, a.batch, overrides)
     except (ConfigError, ValueError) as e:
         p.error(f"--set: {e}")

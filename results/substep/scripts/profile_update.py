@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import collections
 import re
-import time
 
 import jax
 
@@ -24,18 +23,7 @@ from methods.ild.benchmark import speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.paired import compiled_chunk, compiled_forward
 from tasks import make_task
-from timing import xla_op_events
-
-
-def seconds(f, calls: int = 10, rounds: int = 3) -> float:
-    jax.block_until_ready(f())
-    best = float("inf")
-    for _ in range(rounds):
-        t0 = time.perf_counter()
-        for _ in range(calls):
-            jax.block_until_ready(f())
-        best = min(best, (time.perf_counter() - t0) / calls)
-    return best
+from timing import best_seconds, xla_op_events
 
 
 def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
@@ -43,9 +31,10 @@ def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
                                    by_name=True)
     total = sum(time_ns.values())
     kinds, kind_count = collections.Counter(), collections.Counter()
-    for name, ns in time_ns.items():
-        kinds[re.sub(r"\.\d+$", "", name)] += ns
-        kind_count[re.sub(r"\.\d+$", "", name)] += count[name]
+    for name, ns in time_ns.items():  # the kinds xla_op_events gives without by_name
+        kind = re.sub(r"\.\d+$", "", name)
+        kinds[kind] += ns
+        kind_count[kind] += count[name]
     print(f"== {label}: {total / calls / 1e6:.1f} ms per call profiled, "
           f"{sum(count.values()) // calls} op events per call")
     print("  by kind:")
@@ -70,7 +59,8 @@ def main(argv=None):
     setup = speed_setup(task, base)
     chunk, state, n = compiled_chunk(task, task_config(a.task, a.batch), setup)
     forward, params = compiled_forward(task, base, setup)
-    update_s, forward_s = seconds(lambda: chunk(state, n)), seconds(lambda: forward(params))
+    update_s = best_seconds(lambda: chunk(state, n), calls=10)
+    forward_s = best_seconds(lambda: forward(params), calls=10)
     print(f"{a.task}, B = {a.batch}: update {update_s:.4f} s, forward {forward_s:.4f} s, "
           f"update / forward {update_s / forward_s:.2f}x (unprofiled)")
     report("update", lambda: chunk(state, n), chunk.lower(state, n).compile().as_text(),
