@@ -1,4 +1,8 @@
+import contextlib
+import importlib.util
 import os
+import pathlib
+import sys
 import warnings
 
 import pytest
@@ -12,6 +16,29 @@ def _jax_cache(tmp_path_factory):
     from bench.runner import enable_compilation_cache
     enable_compilation_cache(os.environ.get("ILDBENCH_JAX_CACHE") or
                              str(tmp_path_factory.mktemp("jax_cache")))
+
+
+SCRIPTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "substep" / "scripts"
+
+
+@contextlib.contextmanager
+def _substep_script(name: str):
+    """results/substep/scripts/NAME.py loaded as a module, with its folder on the import path
+    while in use (the scripts import their neighbour `timing`)."""
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        yield mod
+    finally:
+        sys.path.remove(str(SCRIPTS))
+
+
+@pytest.fixture(scope="session")
+def substep_script():
+    """`with substep_script("loop_ops") as mod:` loads results/substep/scripts/loop_ops.py."""
+    return _substep_script
 
 
 @pytest.fixture

@@ -3,27 +3,16 @@ optimized HLO: each loop's trip count, the operations one pass of its body runs 
 passes a call makes. Checked on a function whose loops are known by construction, and its
 estimate of the operations per call against those XLA's runtime executes under the
 profiler."""
-import importlib.util
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
 import pytest
 
-SCRIPTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "substep" / "scripts"
-
 
 @pytest.fixture(scope="module")
-def loop_ops():
-    sys.path.insert(0, str(SCRIPTS))  # the scripts import their neighbour `timing`
-    try:
-        spec = importlib.util.spec_from_file_location("loop_ops", SCRIPTS / "loop_ops.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
+def loop_ops(substep_script):
+    with substep_script("loop_ops") as mod:
         yield mod
-    finally:
-        sys.path.remove(str(SCRIPTS))
 
 
 def _nested(x):

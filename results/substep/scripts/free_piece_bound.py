@@ -57,6 +57,12 @@ def _free(fn):
     return lambda *a: _sg(fn(*a))
 
 
+def _module_with(module, name: str):
+    """A stand-in for `module` whose function `name` has a free backward; everything else is
+    the module's own (tasks.spring_adjoint also calls, e.g., kinematics.link_to_joint_frame)."""
+    return types.SimpleNamespace(**{**vars(module), name: _free(getattr(module, name))})
+
+
 def _module_patches(piece: str) -> dict:
     """{name in tasks.spring_adjoint: stand-in} for `piece`."""
     on = lambda name: piece in (name, "all")  # noqa: E731
@@ -64,25 +70,25 @@ def _module_patches(piece: str) -> dict:
     if on("impulse"):
         p["_impulse"] = _free(sa._impulse)
     if on("contact"):
-        p["contact"] = types.SimpleNamespace(get=_free(contact.get))
+        p["contact"] = _module_with(contact, "get")
     if on("joint_types"):
-        p["scan"] = types.SimpleNamespace(link_types=_free(scan.link_types))
+        p["scan"] = _module_with(scan, "link_types")
     if on("to_tau"):
-        p["actuator"] = types.SimpleNamespace(to_tau=_free(actuator.to_tau))
+        p["actuator"] = _module_with(actuator, "to_tau")
     if on("inverse"):
-        p["kinematics"] = types.SimpleNamespace(inverse=_free(kinematics.inverse))
+        p["kinematics"] = _module_with(kinematics, "inverse")
     return p
 
 
 @contextlib.contextmanager
 def free_backward(piece: str):
     """`piece`'s backward made free in `tasks.spring_adjoint.step` while the block runs."""
+    if piece in ("axis_angle", "all"):  # first: the stand-ins below copy the module
+        brax.kinematics.axis_angle_ang = _free(_axis_angle_ang)
     patches = _module_patches(piece)
     old = {name: getattr(sa, name) for name in patches}
     for name, fn in patches.items():
         setattr(sa, name, fn)
-    if piece in ("axis_angle", "all"):
-        brax.kinematics.axis_angle_ang = _free(_axis_angle_ang)
     try:
         yield
     finally:
