@@ -23,7 +23,9 @@ round is a warm-up and is not kept), seconds per call of:
 - loss_fwd, loss_grad: the loss on fixed matched states (B, T, D) against the goals, as the
   update computes it (`config.loss`, alive everywhere), its value and its gradient in the
   states.
-Prints per part the median seconds over rounds and the part's gradient / forward ratio (its
+The physics part differentiates the matched states, not the observations: the observations'
+gradient into the policy is in the update's rest, with the optimizer and whatever policy and
+physics cost together in one loop beyond their sum. Prints per part the median seconds over rounds and the part's gradient / forward ratio (its
 range over rounds), and the update against the sum of its parts. A reverse-mode gradient
 through rematerialized physics runs the forward, the forward again next to its VJP, and the
 VJP: <= 3x needs each part's VJP to cost no more than its forward.
@@ -185,7 +187,7 @@ def summary_lines(rows: list[dict]) -> list[str]:
             f"{med['forward']:.4f} ({shares}); the rest {fwd_rest:.4f} s",
             f"  update's parts: policy_grad + physics_grad + loss_grad = {parts:.4f} s of "
             f"{med['update']:.4f} ({parts / med['update']:.0%}); the rest (the optimizer, the "
-            f"gradient's clipping, policy and physics in one loop) {rest:.4f} s",
+            f"observations' gradient, policy and physics in one loop) {rest:.4f} s",
             "  seconds over 3x the part's forward (physics: brax's; rest: the forward's rest): "
             + ", ".join(f"{k} {v:+.4f}" for k, v in over.items())
             + f"; 3x the forward {3 * med['forward']:.4f}, the update {med['update']:.4f}"]
