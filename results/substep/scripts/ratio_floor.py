@@ -25,8 +25,9 @@ round is a warm-up and is not kept), seconds per call of:
   states.
 The physics part differentiates the matched states, not the observations: the observations'
 gradient into the policy is in the update's rest, with the optimizer and whatever policy and
-physics cost together in one loop beyond their sum. Prints per part the median seconds over rounds and the part's gradient / forward ratio (its
-range over rounds), and the update against the sum of its parts. A reverse-mode gradient
+physics cost together in one loop beyond their sum. Prints per part the median seconds over
+rounds and the part's gradient / forward ratio (its range over rounds), the update against
+the sum of its parts, and each part's seconds over 3x its forward. A reverse-mode gradient
 through rematerialized physics runs the forward, the forward again next to its VJP, and the
 VJP: <= 3x needs each part's VJP to cost no more than its forward.
 """
