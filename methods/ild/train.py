@@ -54,19 +54,63 @@ class StateNorm:
                          std=jnp.sqrt(jnp.clip(flat.var(0), std_min ** 2, 1e6)))
 
 
-def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: StateNorm,
-                      config: ILDConfig):
-    """loss(params, key) over a batch of `num_envs` rollouts of the task's episode length.
-    goals: (K, T, D) normalized demo states s_1..s_T."""
-    env, T, B = task.env, task.episode_length, config.num_envs
+def sample_actions(policy: TanhGaussianPolicy, params, obs: jax.Array, key: jax.Array,
+                   kernels_t) -> jax.Array:
+    """One rollout step's actions for a batch of observations (B, obs_size), from B per-env
+    keys split off `key`: `sample_batch` with the kernels transposed once outside the loop
+    (`kernels_t`, `transposed_backward`), or the policy vmapped per env (`kernels_t` None);
+    the same values either way."""
+    keys = jax.random.split(key, obs.shape[0])
+    if kernels_t is None:
+        return jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, obs, keys)
+    return policy.sample_batch(params, obs, keys, kernels_t)
+
+
+def make_physics_step(task, config: ILDConfig):
+    """step(s, a, t) -> (s', matched states, actions as stepped): one step of a batch of
+    training rollouts after the policy. The per-step gradient normalization of the actions
+    and of the stepped states (per env or over the batch, `grad_norm_scope`), the task's
+    physics, its matched states, and at the end of each truncation window the state's
+    gradient cut (truncated BPTT)."""
+    env = task.env
     gn = normalize_grad if config.grad_normalization else (lambda x: x)
     # The normalization's scope: per env inside the vmaps below ('env'), or over the whole
     # batch after them ('batch', the original's), where the per-env one is the identity.
     batch_gn, gn = (gn, lambda x: x) if config.grad_norm_scope == "batch" else (
         lambda x: x, gn)
 
-    def physics_step(s, a):
-        return gn(env.step(s, a))
+    def step(s, a, t):
+        a = batch_gn(jax.vmap(gn)(a))
+        s2 = batch_gn(jax.vmap(lambda s_, a_: gn(env.step(s_, a_)))(s, a))
+        m = jax.vmap(task.matched_state)(s2)
+        cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
+        s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
+        return s2, m, a
+
+    return step
+
+
+def episode_loss(x: jax.Array, alive: jax.Array, goals: jax.Array, config: ILDConfig):
+    """The update's loss of a batch of normalized episodes x (B, T, D) against the goals
+    (K, T, D), `alive` (B, T) masking states after a termination: (loss, raw loss, per-env
+    LossTerms); loss = tanh(raw) with `tanh_loss`."""
+    if config.loss == "chamfer":
+        per_env = jax.vmap(lambda xb, mb: multi_demo(chamfer_alpha, xb, goals,
+                                                     alpha=config.alpha, mask=mb,
+                                                     distance=config.distance))(x, alive)
+    else:
+        per_env = jax.vmap(lambda xb, mb: multi_demo(stepwise_l2, xb, goals, mask=mb,
+                                                     distance=config.distance))(x, alive)
+    raw = jnp.mean(per_env.loss)
+    return (jnp.tanh(raw) if config.tanh_loss else raw), raw, per_env
+
+
+def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: StateNorm,
+                      config: ILDConfig):
+    """loss(params, key) over a batch of `num_envs` rollouts of the task's episode length.
+    goals: (K, T, D) normalized demo states s_1..s_T."""
+    env, T = task.env, task.episode_length
+    physics_step = make_physics_step(task, config)
 
     def loss_fn(params, key, init_keys):
         k_act = key
@@ -76,16 +120,8 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
 
         def body(s, xs):
             t, k = xs
-            keys = jax.random.split(k, B)
-            # sample_batch: the same values as vmap(sample), from the same per-env keys
-            a = (jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, s.obs, keys)
-                 if kernels_t is None else
-                 policy.sample_batch(params, s.obs, keys, kernels_t))
-            a = batch_gn(jax.vmap(gn)(a))
-            s2 = batch_gn(jax.vmap(physics_step)(s, a))
-            m = jax.vmap(task.matched_state)(s2)
-            cut = (t + 1) % config.truncation == 0  # truncated BPTT window boundary
-            s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
+            a = sample_actions(policy, params, s.obs, k, kernels_t)
+            s2, m, a = physics_step(s, a, t)
             return s2, (m, a, s2.done)
 
         # prevent_cse=False: inside a scan the body is not unrolled, so the CSE barrier
@@ -98,15 +134,7 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         # alive[b, t]: no termination before step t (the terminating state itself counts).
         before = jnp.cumsum(jnp.swapaxes(dones, 0, 1), axis=1) - jnp.swapaxes(dones, 0, 1)
         alive = (before == 0) if config.mask_after_done else jnp.ones_like(before, bool)
-        if config.loss == "chamfer":
-            per_env = jax.vmap(lambda xb, mb: multi_demo(chamfer_alpha, xb, goals,
-                                                         alpha=config.alpha, mask=mb,
-                                                         distance=config.distance))(x, alive)
-        else:
-            per_env = jax.vmap(lambda xb, mb: multi_demo(stepwise_l2, xb, goals, mask=mb,
-                                                         distance=config.distance))(x, alive)
-        raw = jnp.mean(per_env.loss)
-        loss = jnp.tanh(raw) if config.tanh_loss else raw
+        loss, raw, per_env = episode_loss(x, alive, goals, config)
         aux = {"train/loss": loss, "train/loss_raw": raw,
                "train/coverage": jnp.mean(per_env.coverage),
                "train/deviation": jnp.mean(per_env.deviation),

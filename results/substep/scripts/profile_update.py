@@ -23,7 +23,7 @@ from methods.ild.benchmark import speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.paired import compiled_chunk, compiled_forward
 from tasks import make_task
-from timing import best_seconds, xla_op_events
+from timing import best_seconds, op_kind, xla_op_events
 
 
 def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
@@ -32,7 +32,7 @@ def report(label: str, f, hlo: str, top: int, calls: int = 5) -> None:
     total = sum(time_ns.values())
     kinds, kind_count = collections.Counter(), collections.Counter()
     for name, ns in time_ns.items():  # the kinds xla_op_events gives without by_name
-        kind = re.sub(r"\.\d+$", "", name)
+        kind = op_kind(name)
         kinds[kind] += ns
         kind_count[kind] += count[name]
     print(f"== {label}: {total / calls / 1e6:.1f} ms per call profiled, "

@@ -44,9 +44,8 @@ from bench.report import append_csv
 from bench.runner import speed_settings
 from methods.ild.benchmark import speed_setup, task_config
 from methods.ild.config import ILDConfig
-from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 from methods.ild.paired import compiled_chunk, compiled_forward
-from methods.ild.train import rollout_physics
+from methods.ild.train import episode_loss, make_physics_step, rollout_physics, sample_actions
 from tasks import make_task
 
 PARTS = ("forward", "update", "policy_fwd", "policy_grad", "physics_fwd",
@@ -54,8 +53,9 @@ PARTS = ("forward", "update", "policy_fwd", "policy_grad", "physics_fwd",
 
 
 def policy_programs(task, cfg: ILDConfig, setup):
-    """(value, gradient) of the rollout's policy over the episode on fixed observations:
-    value(params, obs) = sum over steps of <a_t, c_t>, gradient in (params, obs)."""
+    """(value, gradient) of the rollout's policy over the episode on fixed observations, as
+    the update samples (`sample_actions`): value(params, obs) = sum over steps of
+    <a_t, c_t>, gradient in (params, obs)."""
     policy, _, _, params, k = setup
     T, B = task.episode_length, cfg.num_envs
     obs = jax.random.normal(k[0], (T, B, task.obs_size))
@@ -63,12 +63,11 @@ def policy_programs(task, cfg: ILDConfig, setup):
     keys = jax.random.split(k[2], T)
 
     def value(p, o):
-        kernels_t = policy.kernels_t(p)
+        kernels_t = policy.kernels_t(p) if cfg.transposed_backward else None
 
         def body(total, xs):
             o_t, c_t, k_t = xs
-            a = policy.sample_batch(p, o_t, jax.random.split(k_t, B), kernels_t)
-            return total + jnp.sum(a * c_t), None
+            return total + jnp.sum(sample_actions(policy, p, o_t, k_t, kernels_t) * c_t), None
 
         return jax.lax.scan(body, 0.0, (o, c, keys))[0]
 
@@ -78,30 +77,26 @@ def policy_programs(task, cfg: ILDConfig, setup):
 
 
 def physics_programs(task, cfg: ILDConfig, setup):
-    """The rollout's physics alone over the episode on fixed actions (the update's loop body
-    without the policy): value(actions) = sum over steps of <matched state, c_t>, through
-    brax's step as shipped, through the training physics, and its gradient in the actions."""
+    """The rollout's physics alone over the episode on fixed actions (the update's
+    `make_physics_step`, without the policy): value(actions) = sum over steps of
+    <matched state, c_t>, through brax's step as shipped, through the training physics, and
+    its gradient in the actions."""
     _, _, _, _, k = setup
     T, B = task.episode_length, cfg.num_envs
     acts = jnp.tanh(jax.random.normal(k[0], (T, B, task.action_size)))
     c = jax.random.normal(k[1], (T, B, task.state_size))
     init_keys = jax.random.split(k[2], B)
-    gn = normalize_grad if cfg.grad_normalization else (lambda x: x)
 
     def value_on(t):
-        env = t.env
+        step = make_physics_step(t, cfg)
 
         def value(a_seq):
-            s0 = jax.vmap(env.reset)(init_keys)
-
             def body(s, xs):
                 i, a, c_t = xs
-                s2 = jax.vmap(lambda s_, a_: gn(env.step(s_, a_)))(s, jax.vmap(gn)(a))
-                m = jax.vmap(t.matched_state)(s2)
-                cut = (i + 1) % cfg.truncation == 0
-                s2 = jax.tree.map(lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x), s2)
+                s2, m, _ = step(s, a, i)
                 return s2, jnp.sum(m * c_t)
 
+            s0 = jax.vmap(t.env.reset)(init_keys)
             return jnp.sum(jax.lax.scan(body, s0, (jnp.arange(T), a_seq, c))[1])
 
         return value
@@ -112,18 +107,14 @@ def physics_programs(task, cfg: ILDConfig, setup):
 
 
 def loss_programs(task, cfg: ILDConfig, setup):
-    """The update's loss alone on fixed matched states: (value, value and gradient)."""
+    """The update's loss alone (`episode_loss`) on fixed matched states: (value, value and
+    gradient)."""
     _, goals, _, _, k = setup
     x = jax.random.normal(k[0], (cfg.num_envs, task.episode_length, task.state_size))
     alive = jnp.ones(x.shape[:2], bool)
-    fn = chamfer_alpha if cfg.loss == "chamfer" else stepwise_l2
-    kw = {"alpha": cfg.alpha} if cfg.loss == "chamfer" else {}
 
     def value(x):
-        per_env = jax.vmap(lambda xb, mb: multi_demo(fn, xb, goals, mask=mb,
-                                                     distance=cfg.distance, **kw))(x, alive)
-        raw = jnp.mean(per_env.loss)
-        return jnp.tanh(raw) if cfg.tanh_loss else raw
+        return episode_loss(x, alive, goals, cfg)[0]
 
     return (jax.jit(value), (x,)), (jax.jit(jax.value_and_grad(value)), (x,))
 

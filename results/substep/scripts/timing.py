@@ -25,6 +25,12 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
     return best
 
 
+def op_kind(name: str) -> str:
+    """An XLA operation's kind: its name without the number (`dot_general.12` ->
+    `dot_general`)."""
+    return re.sub(r"\.\d+$", "", name)
+
+
 def xla_op_events(run, skip=("ThunkExecutor",), by_name: bool = False):
     """(nanoseconds, events) by operation kind (the event's name without its number; with
     `by_name`, by the name itself: one entry per operation) that XLA's CPU runtime threads
@@ -43,7 +49,7 @@ def xla_op_events(run, skip=("ThunkExecutor",), by_name: bool = False):
                 for ev in line.events:
                     if ev.name.startswith(skip):
                         continue
-                    kind = ev.name if by_name else re.sub(r"\.\d+$", "", ev.name)
+                    kind = ev.name if by_name else op_kind(ev.name)
                     time_ns[kind] += ev.duration_ns
                     count[kind] += 1
     return time_ns, count
