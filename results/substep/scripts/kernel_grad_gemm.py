@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import jax
 import jax.numpy as jnp
+from timing import interleaved_seconds
 
 T, IN, OUT = 128, 512, 256
 
@@ -70,16 +70,8 @@ def programs(batch: int) -> dict:
 def run(batch: int, rounds: int = 8, calls: int = 10) -> dict[str, float]:
     """Median seconds per call of each program (round 0 a warm-up)."""
     progs = {name: (jax.jit(f), args) for name, (f, args) in programs(batch).items()}
-    for f, args in progs.values():
-        jax.block_until_ready(f(*args))
-    seconds = {name: [] for name in progs}
-    for _ in range(rounds + 1):
-        for name, (f, args) in progs.items():
-            t0 = time.perf_counter()
-            for _ in range(calls):
-                jax.block_until_ready(f(*args))
-            seconds[name].append((time.perf_counter() - t0) / calls)
-    return {name: statistics.median(s[1:]) for name, s in seconds.items()}
+    return {name: statistics.median(s)
+            for name, s in interleaved_seconds(progs, rounds, calls).items()}
 
 
 def main(argv=None):

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +46,7 @@ from methods.ild.config import ILDConfig
 from methods.ild.paired import compiled_chunk, compiled_forward
 from methods.ild.train import episode_loss, make_physics_step, rollout_physics, sample_actions
 from tasks import make_task
+from timing import interleaved_seconds
 
 PARTS = ("forward", "update", "policy_fwd", "policy_grad", "physics_fwd",
          "physics_train_fwd", "physics_grad", "loss_fwd", "loss_grad")
@@ -132,20 +132,11 @@ def run(task_name: str, batch: int = 32, rounds: int = 6, repeats: int = 8) -> l
              "policy_fwd": pol_f, "policy_grad": pol_g, "physics_fwd": phy_f,
              "physics_train_fwd": phy_tf, "physics_grad": phy_g, "loss_fwd": loss_f,
              "loss_grad": loss_g}
-    for f, args in calls.values():  # compile everything before anything is timed
-        jax.block_until_ready(f(*args))
-    seconds = {p: [] for p in PARTS}
-    for _ in range(rounds + 1):
-        for p in PARTS:
-            f, args = calls[p]
-            t0 = time.perf_counter()
-            for _ in range(repeats):
-                jax.block_until_ready(f(*args))
-            seconds[p].append((time.perf_counter() - t0) / repeats)
+    seconds = interleaved_seconds({p: calls[p] for p in PARTS}, rounds, repeats)
     settings = speed_settings()
     return [{"task": task_name, "batch": batch, "part": p, "round": r,
              "seconds": float(f"{s:.4g}"), **settings}
-            for p in PARTS for r, s in enumerate(seconds[p][1:])]
+            for p in PARTS for r, s in enumerate(seconds[p])]
 
 
 def summary_lines(rows: list[dict]) -> list[str]:

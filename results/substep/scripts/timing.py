@@ -25,6 +25,22 @@ def best_seconds(f, *args, calls: int = 50, rounds: int = 3) -> float:
     return best
 
 
+def interleaved_seconds(programs: dict, rounds: int, calls: int) -> dict[str, list[float]]:
+    """{name: seconds per call in each round} for programs {name: (f, args)}: every program
+    is run once first (compiled), then `rounds` rounds each time every program over `calls`
+    calls in turn, after a warm-up round that is not kept."""
+    for f, args in programs.values():
+        jax.block_until_ready(f(*args))
+    seconds = {name: [] for name in programs}
+    for _ in range(rounds + 1):
+        for name, (f, args) in programs.items():
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                jax.block_until_ready(f(*args))
+            seconds[name].append((time.perf_counter() - t0) / calls)
+    return {name: s[1:] for name, s in seconds.items()}
+
+
 def op_kind(name: str) -> str:
     """An XLA operation's kind: its name without the number (`dot_general.12` ->
     `dot_general`)."""
