@@ -3,6 +3,8 @@ joint forces and contact impulses moved to the links, integration, conversions t
 joint frames) written by hand (`tasks.spring_adjoint`). The same values and the same VJPs
 as XLA's reverse mode of brax's code, piece by piece and (slow) for a whole control step,
 and clear refusals where it does not fit."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +31,11 @@ def _hopper_states(batch=8, steps=10):
 def _states(name, batch=8, steps=10):
     """`batch` envs of task `name` `steps` control steps after reset under a varying action,
     and that action."""
+    return _rollout(name, batch, steps)
+
+
+@functools.lru_cache  # once per (task, batch, steps) and process: its arrays are immutable
+def _rollout(name, batch, steps):
     task = make_task(name)
     env = task.env
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), batch))
@@ -315,7 +322,7 @@ def test_planar_roots_reads_the_scene():
     jax.jit(lambda ang: seen.append(planar_roots(sys_.tree_replace({"dof.motion.ang": ang})))
             )(sys_.dof.motion.ang)
     assert seen == [None]
-    task, ps, _ = _states("ant", batch=1, steps=1)
+    task, ps, _ = _states("ant")  # any ant state (the cached one other tests use)
     with pytest.raises(ValueError, match="3-dof joints are not all planar roots"):
         joints_resolve(task.env.unwrapped.sys, jax.tree.map(lambda v: v[0], ps),
                        jnp.zeros(ps.qd.shape[1:]), planar=True)
@@ -375,7 +382,7 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     forces to links', contact impulses to links', integration's, to-world's,
     world-to-joint's) in every substep of hopper's control step, lean or not; without it,
     none (traced, not compiled)."""
-    task, ps, act = _hopper_states(batch=1, steps=0)
+    task, ps, act = _hopper_states()  # any state: traced, not run
     ps1, a1 = jax.tree.map(lambda v: v[0], ps), act[0]
 
     def custom_vjps(cfg):
