@@ -22,20 +22,10 @@ from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, jo
 from tests.test_lean_substeps import _step_and_vjp
 
 
-def _hopper_states(batch=8, steps=10):
-    """`batch` hopper envs `steps` control steps after reset under a varying action (the
-    foot on the ground), and that action."""
-    return _states("hopper", batch, steps)
-
-
+@functools.lru_cache  # once per task and process (its arrays are immutable: tests share them)
 def _states(name, batch=8, steps=10):
     """`batch` envs of task `name` `steps` control steps after reset under a varying action,
     and that action."""
-    return _rollout(name, batch, steps)
-
-
-@functools.lru_cache  # once per (task, batch, steps) and process: its arrays are immutable
-def _rollout(name, batch, steps):
     task = make_task(name)
     env = task.env
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), batch))
@@ -75,7 +65,7 @@ def test_hand_integrate_is_braxs_integrate_and_its_vjp():
     output: `integrate`'s values and its hand-written VJP equal brax's integrate and XLA's
     reverse mode of it to float32 round-off (a wrong sign in the quaternion terms moves the
     rotation's and angular velocity's cotangents by ~dt |w| |g|, far past the tolerance)."""
-    task, ps, _ = _hopper_states()
+    task, ps, _ = _states("hopper")
     sys_ = task.env.unwrapped.sys
     args = (ps.x_i, ps.xd_i, jax.tree.map(lambda v: 0.3 * jnp.cos(3.0 * v), ps.xd_i))
     want_f = jax.vmap(lambda *a: integrator.integrate(sys_, *a))
@@ -110,7 +100,7 @@ def test_hand_to_world_is_braxs_to_world_and_its_vjp():
     """`to_world` on 8 hopper states mid-hop: its values and hand-written VJP equal
     brax.com.to_world and XLA's reverse mode of it, in the link frames and motions and in the
     links' centre-of-mass offsets (a system field, through `tree_replace`)."""
-    task, ps, _ = _hopper_states()
+    task, ps, _ = _states("hopper")
     sys_ = task.env.unwrapped.sys
 
     def through(fn):
@@ -137,7 +127,7 @@ def test_hand_inv_inertia_is_braxs_and_its_vjp():
     run 1.0, where D is the identity): its values and hand-written VJP equal
     brax.com.inv_inertia and XLA's reverse mode of it, in the link rotations and in the
     system's principal inertias and inertia frames."""
-    task, ps, _ = _hopper_states()
+    task, ps, _ = _states("hopper")
     sys_ = task.env.unwrapped.sys.tree_replace({"spring_inertia_scale": 0.5})
 
     def through(fn):
@@ -382,7 +372,7 @@ def test_ild_trains_through_the_hand_written_step_where_asked():
     forces to links', contact impulses to links', integration's, to-world's,
     world-to-joint's) in every substep of hopper's control step, lean or not; without it,
     none (traced, not compiled)."""
-    task, ps, act = _hopper_states()  # any state: traced, not run
+    task, ps, act = _states("hopper")  # any state: traced, not run
     ps1, a1 = jax.tree.map(lambda v: v[0], ps), act[0]
 
     def custom_vjps(cfg):
@@ -404,7 +394,7 @@ def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges, planar):
     `hinge_forces` and `planar_root`: the end state and the gradient of a
     function of it in the incoming state and the actions agree with the lean copy through
     XLA's reverse mode to float32 round-off."""
-    task, ps, act = _hopper_states()
+    task, ps, act = _states("hopper")
     want, want_grad = _step_and_vjp(
         with_lean_substeps(task).env.unwrapped.pipeline_step, ps, act)
     got, grad = _step_and_vjp(
