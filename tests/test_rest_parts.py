@@ -27,7 +27,7 @@ def test_obs_cut_samples_the_same_with_no_gradient_into_the_observations(rest_pa
     def value(pol, p, o):
         return jnp.sum(pol.sample_batch(p, o, keys, kt) ** 2)
 
-    for f in (lambda pol, p, o: value(pol, p, o),
+    for f in (value,
               lambda pol, p, o: jnp.sum(jax.vmap(pol.sample, (None, 0, 0))(p, o, keys) ** 2)):
         v, (gp, go) = jax.value_and_grad(f, argnums=(1, 2))(policy, params, obs)
         vc, (gpc, goc) = jax.value_and_grad(f, argnums=(1, 2))(cut, params, obs)

@@ -16,7 +16,7 @@ not kept), seconds per call of:
 - grad: the update's gradient alone (no clean-up, clipping, Adam), keys as arguments;
 - grad_obs_cut: grad with no gradient into the policy's observations (stop_gradient), which
   the parts never carry.
-Then XLA's working memory (`memory_analysis().temp_size_in_bytes`) of grad and of
+Then XLA's working memory (the benchmark's `temp_bytes`) of grad and of
 ratio_floor.py's policy, physics and loss gradients.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ import jax
 
 from bench.report import append_csv
 from bench.runner import speed_settings
-from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.benchmark import speed_setup, task_config, temp_bytes
 from methods.ild.config import ILDConfig
 from methods.ild.paired import compiled_chunk, compiled_forward
 from methods.ild.train import make_rollout_loss, rollout_physics
@@ -55,7 +55,7 @@ class ObsCut:
 
 
 def temp_mib(f, args) -> float:
-    return f.lower(*args).compile().memory_analysis().temp_size_in_bytes / 2 ** 20
+    return temp_bytes(f.lower(*args).compile()) / 2 ** 20
 
 
 def run(task_name: str, batch: int, rounds: int, repeats: int):
