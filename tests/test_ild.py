@@ -113,7 +113,7 @@ class _ModePolicy(TanhGaussianPolicy):
     def sample(self, params, obs, key):
         return self.mode(params, obs)
 
-    def sample_batch(self, params, obs, keys, kernels_t):  # ILD's rollout (the default)
+    def sample_batch(self, params, obs, keys, kernels_t, swish_remat=True):  # the default
         return self.mode(params, obs)
 
 
@@ -128,7 +128,7 @@ def _setup(config, dtype=jnp.float32, deterministic=False):
     flat = ds.reshape(-1, ds.shape[-1])
     norm = StateNorm(flat.mean(0), jnp.sqrt(jnp.clip(flat.var(0), 0.01, 1e6)))
     cls = _ModePolicy if deterministic else TanhGaussianPolicy
-    policy = cls(task.obs_size, task.action_size, (32, 32))
+    policy = cls(task.obs_size, task.action_size, config.hidden)
     params = policy.init(jax.random.PRNGKey(0), ObsNorm.fit(jnp.asarray(demo.obs[0])))
     params = jax.tree.map(lambda x: jnp.asarray(x, dtype), params)
     loss = make_rollout_loss(task, policy, norm(ds), norm, config)
@@ -335,6 +335,61 @@ def test_transposed_backward_computes_the_same_loss_and_gradient():
         return [e.outvars[0].aval.shape for e in j.jaxpr.eqns if e.primitive.name == "transpose"]
     assert [(32, 2), (32, 32), (2, 32)] == [s for s in transposed(jaxprs[True]) if 32 in s]
     assert not [s for s in transposed(jaxprs[False]) if 32 in s]
+
+
+def test_swish_dense_t_is_reverse_mode_of_swish_then_the_product_bit_for_bit():
+    """swish_dense_t(h, k, k.T) = swish(h) @ k, its backward keeping only h: the same value
+    and the same cotangents in h and k as reverse mode of linen.swish then the product, bit
+    for bit, under jit, on pre-activations from 0 to +-1e4 (where sigmoid rounds to 0 and 1)
+    and over two leading axes; at +-inf both give the same non-finite cotangents."""
+    from flax import linen
+    from methods.common.policy import swish_dense_t
+    h = jnp.concatenate([jax.random.normal(jax.random.PRNGKey(0), (2, 5, 6)) * 4,
+                         jnp.array([0.0, 1e-30, -20.0, 30.0, -1e4, 1e4]).reshape(1, 1, 6)
+                         * jnp.ones((2, 1, 6))], axis=1)
+    k = jax.random.normal(jax.random.PRNGKey(1), (6, 7))
+    g = jax.random.normal(jax.random.PRNGKey(2), (2, 6, 7))
+
+    def vjp(f, h):
+        out, back = jax.vjp(f, h, k)
+        return (out, *back(g))
+
+    new = jax.jit(lambda h: vjp(lambda h, k: swish_dense_t(h, k, k.T), h))(h)
+    ref = jax.jit(lambda h: vjp(lambda h, k: linen.swish(h) @ k, h))(h)
+    for a, b in zip(ref, new):
+        np.testing.assert_array_equal(b, a)
+    assert np.isfinite(np.asarray(new[1])).all() and float(jnp.abs(new[2]).sum()) > 0
+    # sigmoid(-1e4) = 0 and sigmoid(1e4) = 1: h's cotangent there is 0 and g @ k.T
+    np.testing.assert_array_equal(new[1][:, -1, 4], 0.0)
+    np.testing.assert_allclose(new[1][:, -1, 5], (g @ k.T)[:, -1, 5], rtol=1e-6)
+    h_inf = h.at[0, 0, 0].set(jnp.inf).at[1, 0, 0].set(-jnp.inf)
+    new = jax.jit(lambda h: vjp(lambda h, k: swish_dense_t(h, k, k.T), h))(h_inf)
+    ref = jax.jit(lambda h: vjp(lambda h, k: linen.swish(h) @ k, h))(h_inf)
+    for a, b in zip(ref, new):
+        np.testing.assert_array_equal(b, a)
+
+
+def test_swish_remat_is_the_same_update_bit_for_bit_with_fewer_residuals():
+    """swish_remat=True (the default) changes what the policy's backward keeps, not what it
+    computes: pointmass's loss and gradient through the rollout (truncation and per-step
+    normalization in the path) equal swish_remat=False's bit for bit, and XLA's working
+    memory for the gradient falls (hidden 512-256, the paper's, B = 4: the policy's stacked
+    residuals are most of it)."""
+    from methods.ild.benchmark import temp_bytes
+    out, mem = {}, {}
+    for remat in (False, True):
+        loss, params, keys = _setup(_cfg(swish_remat=remat, truncation=10))
+        f = jax.jit(jax.value_and_grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0]))
+        out[remat] = f(params)
+        loss, params, keys = _setup(_cfg(swish_remat=remat, hidden=(512, 256)))
+        g = jax.jit(jax.grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0]))
+        mem[remat] = temp_bytes(g.lower(params).compile())
+    assert float(out[True][0]) == float(out[False][0])
+    for a, b in zip(jax.tree_util.tree_leaves(out[False][1]),
+                    jax.tree_util.tree_leaves(out[True][1])):
+        np.testing.assert_array_equal(b, a)
+    assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
+    assert mem[True] < 0.7 * mem[False], mem
 
 
 def test_chunk_runs_the_same_updates_as_one_per_call():
@@ -1129,3 +1184,25 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
         paired.apg_physics(mixed, base)
     assert paired.apg_physics(mixed, base, brax=True) == "brax"
     assert paired.apg_physics({"task": mixed["task"]}, base) == "closed_form_adjoint"
+
+
+@pytest.mark.slow  # two update compiles per task: 1-3 minutes each on one CPU core
+@pytest.mark.parametrize("task_name", ["ant", "hopper", "humanoid", "reacher", "walker2d",
+                                       "swimmer", "inverted_pendulum", "acrobot"])
+def test_swish_remat_is_the_same_update_bit_for_bit_on_every_brax_task(task_name):
+    """swish_remat's claim on the paper's 8 tasks, each with the config it trains with (its
+    TASK_OVERRIDES: hand-written VJPs, closed form, small dots) at B = 8: the parameters and
+    metrics after one update equal swish_remat=False's bit for bit."""
+    from methods.ild.benchmark import speed_setup, task_config
+    from methods.ild.paired import compiled_chunk
+    task = make_task(task_name)
+    after = {}
+    for remat in (False, True):
+        cfg = task_config(task_name, 8, {"swish_remat": remat})
+        assert cfg.swish_remat is remat
+        chunk, state, n = compiled_chunk(task, cfg, speed_setup(task, cfg))
+        after[remat] = chunk(state, n)
+    for a, b in zip(jax.tree_util.tree_leaves(after[False]),
+                    jax.tree_util.tree_leaves(after[True])):
+        np.testing.assert_array_equal(b, a)
+    assert float(after[True][1]["grad/norm_raw"][0]) > 0

@@ -82,7 +82,7 @@ from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update
 from tasks import make_task
 task = make_task("pointmass")
-cfg = ILDConfig(num_envs=32)
+cfg = ILDConfig(num_envs=128)
 policy, goals, norm, params, k = speed_setup(task, cfg)
 update, opt, _ = make_update(task, policy, goals, norm, cfg, k[2])
 chunk, state = make_chunk(update, 1), initial_state(params, opt, k[3], cfg)
@@ -110,7 +110,8 @@ def _updates(tunables: str | None) -> dict:
 @pytest.mark.skipif(malloc.env_with_hugepages({}) is None,
                     reason="glibc's huge-page tunable cannot act on this machine")
 def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
-    """Four ILD updates on pointmass (B = 32: ~50 MiB of backward-pass residuals per call),
+    """Four ILD updates on pointmass (B = 128: ~57 MiB of backward-pass residuals per call;
+    B = 32 held 50 MiB until session 60's `swish_remat` cut it to 14, under the threshold),
     in a process without and one with the tunable: the same parameters bit for bit, and
     (where the kernel's huge pages are 'madvise', so only the tunable asks for them) a
     fraction of the page faults per call."""

@@ -52,8 +52,7 @@ def _dense_t_fwd(x, kernel, kernel_t):
 
 def _dense_t_bwd(res, g):
     x, kernel_t = res
-    d_kernel = jax.lax.dot_general(x, g, ((tuple(range(x.ndim - 1)),) * 2, ((), ())))
-    return g @ kernel_t, d_kernel, None
+    return g @ kernel_t, _contract_leading(x, g), None
 
 
 dense_t.defvjp(_dense_t_fwd, _dense_t_bwd)
@@ -61,6 +60,40 @@ dense_t.defvjp(_dense_t_fwd, _dense_t_bwd)
 
 ACTIVATION = linen.swish
 """The hidden layers' activation (A.5): brax's network and `sample_batch` both use it."""
+
+
+def _contract_leading(x: jax.Array, g: jax.Array) -> jax.Array:
+    """x^T g over every leading axis: a kernel's cotangent from its input and output's."""
+    return jax.lax.dot_general(x, g, ((tuple(range(x.ndim - 1)),) * 2, ((), ())))
+
+
+@jax.custom_vjp
+def swish_dense_t(h: jax.Array, kernel: jax.Array, kernel_t: jax.Array) -> jax.Array:
+    """swish(h) @ kernel: a hidden layer's activation and the next layer's product, whose
+    backward keeps only the pre-activation h and recomputes sigmoid(h) and swish(h) from it.
+    Reverse mode of the two apart keeps swish's intermediates and its output (four floats per
+    hidden unit, 77% of hopper's update's working memory at B = 32; results/JOURNAL.md,
+    session 59), which a rollout's scan stacks over its 128 steps; writing and reading them
+    costs more than the sigmoid again. The backward computes reverse mode's own expressions
+    (swish's cotangent g*s + (g*h)*(s*(1-s)), the kernel's x^T g and x's g @ kernel_t), so
+    the gradient is the same bit for bit (tests/test_ild.py: alone, on pointmass's rollout,
+    and, behind -m slow, one update of each of the 8 brax tasks; session 60)."""
+    return jax.lax.dot_general(ACTIVATION(h), kernel, (((h.ndim - 1,), (0,)), ((), ())))
+
+
+def _swish_dense_t_fwd(h, kernel, kernel_t):
+    return swish_dense_t(h, kernel, kernel_t), (h, kernel_t)
+
+
+def _swish_dense_t_bwd(res, g):
+    h, kernel_t = res
+    s = jax.nn.sigmoid(h)
+    gx = g @ kernel_t
+    # swish = h * sigmoid(h): the product's two cotangents, sigmoid's through s * (1 - s)
+    return gx * s + (gx * h) * (s * (1 - s)), _contract_leading(h * s, g), None
+
+
+swish_dense_t.defvjp(_swish_dense_t_fwd, _swish_dense_t_bwd)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,19 +130,25 @@ class TanhGaussianPolicy:
                      for i in range(len(layers)))
 
     def sample_batch(self, params: dict, obs: jax.Array, keys: jax.Array,
-                     kernels_t: tuple[jax.Array, ...]) -> jax.Array:
+                     kernels_t: tuple[jax.Array, ...], swish_remat: bool = True) -> jax.Array:
         """`sample` for a batch: obs (B, obs_size), keys (B, 2) -> (B, action_size), the
         same values as vmap(sample); the network's products run through `dense_t`, so the
         backward reads `kernels_t` (from `kernels_t(params)`) instead of transposing every
         kernel at every step. Batched on purpose: under vmap, the kernels' cotangents would
-        be made per example and then summed."""
+        be made per example and then summed. `swish_remat`: each hidden activation and the
+        product after it as one `swish_dense_t`, whose backward keeps only the
+        pre-activation (the same values and gradient bit for bit, fewer residuals)."""
         layers = params["net"]["params"]
         x = jax.lax.stop_gradient(params["norm"])(obs)
         for i, kt in enumerate(kernels_t):
             layer = layers[f"hidden_{i}"]
-            x = dense_t(x, layer["kernel"], kt) + layer["bias"]
-            if i < len(kernels_t) - 1:
-                x = ACTIVATION(x)
+            if i == 0:
+                x = dense_t(x, layer["kernel"], kt)
+            elif swish_remat:  # x is the previous layer's pre-activation
+                x = swish_dense_t(x, layer["kernel"], kt)
+            else:
+                x = dense_t(ACTIVATION(x), layer["kernel"], kt)
+            x = x + layer["bias"]
         return jax.vmap(self._draw)(x, keys)
 
     def _draw(self, logits: jax.Array, key: jax.Array) -> jax.Array:

@@ -134,6 +134,20 @@ class ILDConfig:
     of a step's cost) and about as fast on walker2d and ant, whose physics dominate (README
     ILD speed, session 31, `python -m methods.ild.paired`). False: the policy vmapped per
     env, flax's backward."""
+    swish_remat: bool = True
+    """With `transposed_backward`, each of the policy's hidden activations and the product
+    after it run as one `methods.common.policy.swish_dense_t`, whose backward keeps only the
+    pre-activation and recomputes swish from it, instead of reverse mode's swish
+    intermediates and output, which the rollout's scan stacks over every step (77% of
+    hopper's update's working memory at B = 32, session 59). The same rollout and gradient
+    bit for bit (tests/test_ild.py: pointmass, and the slow test's one update of each of the
+    8 brax tasks), so recorded cells stand. On one core at B = 32 (session 60): the policy's
+    gradient alone 1.26x faster on hopper in 14 MiB instead of 50
+    (results/substep/scripts/swish_policy.py); the update 1.077x faster on hopper, 1.016x
+    walker2d, 1.022x ant, 1.004x humanoid, 1.14x acrobot, 1.30x pointmass (`python -m
+    methods.ild.paired --task T --variant task,swish_remat=false --variant task
+    --apg-physics brax --forward`, results/swish_remat/): about 9-18 ms an update on the
+    spring tasks, the policy's share. False: swish and the product apart, as before."""
     closed_form_adjoint: bool = False
     """Differentiate the training rollouts' physics through the task's closed-form step
     (`tasks.core.with_closed_form_adjoint`; acrobot's double-pendulum equations) instead of

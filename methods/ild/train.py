@@ -55,15 +55,16 @@ class StateNorm:
 
 
 def sample_actions(policy: TanhGaussianPolicy, params, obs: jax.Array, key: jax.Array,
-                   kernels_t) -> jax.Array:
+                   kernels_t, swish_remat: bool = True) -> jax.Array:
     """One rollout step's actions for a batch of observations (B, obs_size), from B per-env
     keys split off `key`: `sample_batch` with the kernels transposed once outside the loop
-    (`kernels_t`, `transposed_backward`), or the policy vmapped per env (`kernels_t` None);
+    (`kernels_t`, `transposed_backward`; its hidden layers keep only their pre-activations
+    for the backward with `swish_remat`), or the policy vmapped per env (`kernels_t` None);
     the same values either way."""
     keys = jax.random.split(key, obs.shape[0])
     if kernels_t is None:
         return jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, obs, keys)
-    return policy.sample_batch(params, obs, keys, kernels_t)
+    return policy.sample_batch(params, obs, keys, kernels_t, swish_remat=swish_remat)
 
 
 def make_physics_step(task, config: ILDConfig):
@@ -120,7 +121,7 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
 
         def body(s, xs):
             t, k = xs
-            a = sample_actions(policy, params, s.obs, k, kernels_t)
+            a = sample_actions(policy, params, s.obs, k, kernels_t, config.swish_remat)
             s2, m, a = physics_step(s, a, t)
             return s2, (m, a, s2.done)
 

@@ -67,7 +67,8 @@ def policy_programs(task, cfg: ILDConfig, setup):
 
         def body(total, xs):
             o_t, c_t, k_t = xs
-            return total + jnp.sum(sample_actions(policy, p, o_t, k_t, kernels_t) * c_t), None
+            a = sample_actions(policy, p, o_t, k_t, kernels_t, cfg.swish_remat)
+            return total + jnp.sum(a * c_t), None
 
         return jax.lax.scan(body, 0.0, (o, c, keys))[0]
 

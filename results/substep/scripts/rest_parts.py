@@ -47,8 +47,9 @@ class ObsCut:
     def __getattr__(self, name):
         return getattr(self._policy, name)
 
-    def sample_batch(self, params, obs, keys, kernels_t):
-        return self._policy.sample_batch(params, jax.lax.stop_gradient(obs), keys, kernels_t)
+    def sample_batch(self, params, obs, keys, kernels_t, swish_remat=True):
+        return self._policy.sample_batch(params, jax.lax.stop_gradient(obs), keys, kernels_t,
+                                         swish_remat=swish_remat)
 
     def sample(self, params, obs, key):
         return self._policy.sample(params, jax.lax.stop_gradient(obs), key)
