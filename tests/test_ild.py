@@ -113,7 +113,7 @@ class _ModePolicy(TanhGaussianPolicy):
     def sample(self, params, obs, key):
         return self.mode(params, obs)
 
-    def sample_batch(self, params, obs, keys, kernels_t, swish_remat=True):  # the default
+    def sample_batch(self, params, obs, keys, kernels_t, swish_remat=True, taps=None):
         return self.mode(params, obs)
 
 
@@ -390,6 +390,66 @@ def test_swish_remat_is_the_same_update_bit_for_bit_with_fewer_residuals():
         np.testing.assert_array_equal(b, a)
     assert sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(out[True][1])) > 0
     assert mem[True] < 0.7 * mem[False], mem
+
+
+def test_dense_taps_hand_out_the_kernel_cotangents_factors():
+    """dense_tap and swish_dense_tap compute dense_t's and swish_dense_t's value and input
+    cotangent bit for bit, make no kernel cotangent, and hand its two factors out as the
+    tap's cotangent: (the layer's input, g), whose contract_leading is the kernel cotangent
+    dense_t and swish_dense_t make, bit for bit (all under jit)."""
+    from methods.common.policy import (contract_leading, dense_t, dense_tap, swish_dense_t,
+                                       swish_dense_tap)
+    x = jax.random.normal(jax.random.PRNGKey(0), (3, 4, 6)) * 3
+    k = jax.random.normal(jax.random.PRNGKey(1), (6, 5))
+    g = jax.random.normal(jax.random.PRNGKey(2), (3, 4, 5))
+    tap = (jnp.zeros((3, 4, 6)), jnp.zeros((3, 4, 5)))
+    for ref_fn, tap_fn, factor in ((dense_t, dense_tap, x),
+                                   (swish_dense_t, swish_dense_tap, x * jax.nn.sigmoid(x))):
+        out, back = jax.vjp(lambda x_, k_: ref_fn(x_, k_, k.T), x, k)
+        ct_x, ct_k = jax.jit(back)(g)
+        out_t, back_t = jax.vjp(lambda x_, k_, t_: tap_fn(x_, k_, k.T, t_), x, k, tap)
+        ct_x_t, ct_k_t, ct_tap = jax.jit(back_t)(g)
+        np.testing.assert_array_equal(out_t, out)
+        np.testing.assert_array_equal(ct_x_t, ct_x)
+        np.testing.assert_array_equal(ct_k_t, 0.0)
+        np.testing.assert_allclose(ct_tap[0], factor, rtol=1e-6)  # XLA fuses sigmoid
+        np.testing.assert_array_equal(ct_tap[1], g)
+        np.testing.assert_array_equal(contract_leading(*ct_tap), ct_k)
+        assert float(jnp.abs(ct_k).sum()) > 0
+
+
+@pytest.mark.parametrize("kw", [dict(kernel_grad_group=4), dict(kernel_grad_group=16),
+                                dict(kernel_grad_group=8, remat=True),
+                                dict(kernel_grad_group=4, swish_remat=False)])
+def test_kernel_grad_group_is_the_same_rollout_gradient_to_round_off(kw):
+    """kernel_grad_group=G runs the rollout in groups of G steps whose backward makes each
+    kernel's cotangent once per group: pointmass's loss (truncation 10, per-step
+    normalization) equals G = 1's bit for bit, and every gradient leaf G = 1's to float32
+    round-off (the kernels' sums over steps in another order)."""
+    out = {}
+    for extra in ({}, kw):
+        base = {k: v for k, v in kw.items() if k != "kernel_grad_group"}
+        loss, params, keys = _setup(_cfg(truncation=10, **{**base, **extra}))
+        out[bool(extra)] = jax.jit(jax.value_and_grad(
+            lambda p: loss(p, jax.random.PRNGKey(2), keys)[0]))(params)
+    assert float(out[True][0]) == float(out[False][0])
+    flat = jax.tree_util.tree_flatten_with_path(out[False][1])[0]
+    for (path, a), b in zip(flat, jax.tree_util.tree_leaves(out[True][1])):
+        np.testing.assert_allclose(b, a, rtol=2e-5, atol=1e-6 * float(jnp.abs(a).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    kernels = [v for p, v in flat if "kernel" in jax.tree_util.keystr(p)]
+    assert len(kernels) == 3 and all(float(jnp.abs(v).sum()) > 0 for v in kernels)
+
+
+def test_kernel_grad_group_refuses_what_it_cannot_group():
+    """A group that does not divide the episode, and grouping without sample_batch's
+    transposed backward (no taps to group), are refused by name with the fix."""
+    with pytest.raises(ValueError, match="does not divide pointmass's episode"):
+        _setup(_cfg(kernel_grad_group=3))
+    with pytest.raises(ValueError, match="transposed_backward True or kernel_grad_group 1"):
+        ILDConfig(kernel_grad_group=4, transposed_backward=False)
+    with pytest.raises(ValueError, match="kernel_grad_group must be >= 1"):
+        ILDConfig(kernel_grad_group=0)
 
 
 def test_chunk_runs_the_same_updates_as_one_per_call():
@@ -1079,7 +1139,8 @@ def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(t
     """methods.ild.paired's summary, on hand-made rows: medians over rounds of the seconds
     and of the per-round ratios, their ranges, and update / forward from the fastest rounds
     (fastest update over fastest forward, here from different rounds); rows without the
-    forward (NaN in a CSV) get no forward figures. `--summarize` reads an earlier run's CSV
+    forward (NaN in a CSV) get no forward figures; a second variant gets its speed-up over
+    the first from the rounds both ran. `--summarize` reads an earlier run's CSV
     and refuses a file that is not one, naming it."""
     import pandas as pd
     from methods.ild import paired
@@ -1087,22 +1148,26 @@ def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(t
              "over_apg": round(a / s, 3), "forward_seconds": f, "over_forward": round(s / f, 3)}
             for i, (s, a, f) in enumerate([(0.30, 0.60, 0.10), (0.20, 0.50, 0.08),
                                            (0.25, 0.40, 0.05)])]
-    rows += [{"task": "hopper", "variant": "old", "round": 0, "seconds": 0.4,
+    rows += [{"task": "hopper", "variant": "old", "round": i, "seconds": s,
               "apg_seconds": 0.6, "over_apg": 1.5, "forward_seconds": float("nan"),
-              "over_forward": float("nan")}]
+              "over_forward": float("nan")} for i, s in ((0, 0.4), (2, 0.2))]
     task, old = paired.summarize(rows)
+    # old against the first variant, task, round by round: 0.30 / 0.4 and 0.25 / 0.2
+    assert (old["speedup"], old["speedup_min"], old["speedup_max"]) == pytest.approx(
+        (1.0, 0.75, 1.25)) and old["speedup_over"] == "task" and "speedup" not in task
     assert (task["rounds"], task["seconds"], task["apg_seconds"]) == (3, 0.25, 0.5)
     assert (task["over_apg"], task["over_apg_min"], task["over_apg_max"]) == (2.0, 1.6, 2.5)
     assert (task["over_forward"], task["over_forward_min"], task["over_forward_max"]) == (
         3.0, 2.5, 5.0)
     assert task["forward_seconds"] == 0.08
     assert task["fastest_over_forward"] == pytest.approx(0.20 / 0.05)
-    assert old["rounds"] == 1 and "over_forward" not in old and old["over_apg"] == 1.5
+    assert old["rounds"] == 2 and "over_forward" not in old and old["over_apg"] == 1.5
     path = tmp_path / "paired.csv"
     pd.DataFrame(rows).to_csv(path, index=False)
     paired.main(["--summarize", str(path)])
     out = capsys.readouterr().out.splitlines()
     assert out == paired.summary_lines(rows) and "fastest rounds 4.000 over 3 rounds" in out[0]
+    assert out[1].endswith("over 2 rounds; 1.000x as fast as task [0.750, 1.250]")
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     with pytest.raises(SystemExit):
         paired.main(["--summarize", str(tmp_path / "other.csv")])
@@ -1184,6 +1249,40 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
         paired.apg_physics(mixed, base)
     assert paired.apg_physics(mixed, base, brax=True) == "brax"
     assert paired.apg_physics({"task": mixed["task"]}, base) == "closed_form_adjoint"
+
+
+@pytest.mark.slow  # two gradient compiles per task
+@pytest.mark.parametrize("task_name", ["ant", "hopper", "humanoid", "reacher", "walker2d",
+                                       "swimmer", "inverted_pendulum", "acrobot"])
+def test_kernel_grad_group_is_the_same_gradient_to_round_off_on_every_brax_task(task_name):
+    """kernel_grad_group=8 on the paper's 8 tasks, each with the config it trains with (its
+    TASK_OVERRIDES), at B = 8 over a 16-step episode (two groups): the rollout loss and
+    every gradient leaf equal G = 1's to float32 round-off, within 1e-3 of the leaf's
+    largest entry. That is the spread of two programs of one function: whole-step `remat`
+    moves humanoid's gradient by 4.5e-4 of a leaf's largest entry, G = 8 by 2.2e-4; a lost
+    group or a misplaced factor moves it by order 1. Over the full 128 steps the contact
+    tasks' float32 rollouts differ between any two compiled programs (ant's G = 1 loss
+    2.7095 in its forward program, 2.7183 in its value_and_grad: round-off the contacts
+    amplify), so the comparison there would test chaos, not the grouping
+    (results/JOURNAL.md, session 61)."""
+    from methods.ild.benchmark import speed_setup, task_config
+    from tasks.core import Task
+    task = make_task(task_name)
+    task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
+    out = {}
+    for group in (1, 8):
+        cfg = task_config(task_name, 8, {"kernel_grad_group": group})
+        policy, goals, norm, params, k = speed_setup(task, cfg)
+        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        init_keys = jax.random.split(k[2], 8)
+        out[group] = jax.jit(jax.value_and_grad(
+            lambda p: loss(p, k[3], init_keys)[0]))(params)
+    np.testing.assert_allclose(float(out[8][0]), float(out[1][0]), rtol=1e-5)
+    flat = jax.tree_util.tree_flatten_with_path(out[1][1])[0]
+    for (path, a), b in zip(flat, jax.tree_util.tree_leaves(out[8][1])):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-3 * float(jnp.abs(a).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(out[1][1]["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
 
 
 @pytest.mark.slow  # two update compiles per task: 1-3 minutes each on one CPU core

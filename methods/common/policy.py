@@ -42,7 +42,7 @@ def _product(x: jax.Array, kernel: jax.Array) -> jax.Array:
     return jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
 
 
-def _contract_leading(x: jax.Array, g: jax.Array) -> jax.Array:
+def contract_leading(x: jax.Array, g: jax.Array) -> jax.Array:
     """x^T g over every leading axis: a kernel's cotangent from its input and output's."""
     return jax.lax.dot_general(x, g, ((tuple(range(x.ndim - 1)),) * 2, ((), ())))
 
@@ -63,7 +63,7 @@ def _dense_t_fwd(x, kernel, kernel_t):
 
 def _dense_t_bwd(res, g):
     x, kernel_t = res
-    return g @ kernel_t, _contract_leading(x, g), None
+    return g @ kernel_t, contract_leading(x, g), None
 
 
 dense_t.defvjp(_dense_t_fwd, _dense_t_bwd)
@@ -96,10 +96,52 @@ def _swish_dense_t_bwd(res, g):
     s = jax.nn.sigmoid(h)
     gx = g @ kernel_t
     # swish = h * sigmoid(h): the product's two cotangents, sigmoid's through s * (1 - s)
-    return gx * s + (gx * h) * (s * (1 - s)), _contract_leading(h * s, g), None
+    return gx * s + (gx * h) * (s * (1 - s)), contract_leading(h * s, g), None
 
 
 swish_dense_t.defvjp(_swish_dense_t_fwd, _swish_dense_t_bwd)
+
+
+@jax.custom_vjp
+def dense_tap(x: jax.Array, kernel: jax.Array, kernel_t: jax.Array, tap) -> jax.Array:
+    """x @ kernel, like `dense_t`, whose backward does not make the kernel's cotangent: it
+    hands that product's two factors out as the cotangent of `tap` (zeros shaped like x and
+    like the output), (x, g), so that the caller can multiply them for many steps at once
+    (`ILDConfig.kernel_grad_group`)."""
+    return _product(x, kernel)
+
+
+def _dense_tap_fwd(x, kernel, kernel_t, tap):
+    return dense_tap(x, kernel, kernel_t, tap), (x, kernel_t)
+
+
+def _dense_tap_bwd(res, g):
+    x, kernel_t = res
+    return g @ kernel_t, None, None, (x, g)
+
+
+dense_tap.defvjp(_dense_tap_fwd, _dense_tap_bwd)
+
+
+@jax.custom_vjp
+def swish_dense_tap(h: jax.Array, kernel: jax.Array, kernel_t: jax.Array, tap) -> jax.Array:
+    """swish(h) @ kernel, like `swish_dense_t`, whose backward hands the kernel's cotangent's
+    factors (swish(h), g) out through `tap`'s cotangent instead of multiplying them."""
+    return _product(ACTIVATION(h), kernel)
+
+
+def _swish_dense_tap_fwd(h, kernel, kernel_t, tap):
+    return swish_dense_tap(h, kernel, kernel_t, tap), (h, kernel_t)
+
+
+def _swish_dense_tap_bwd(res, g):
+    h, kernel_t = res
+    s = jax.nn.sigmoid(h)
+    gx = g @ kernel_t
+    return gx * s + (gx * h) * (s * (1 - s)), None, None, (h * s, g)
+
+
+swish_dense_tap.defvjp(_swish_dense_tap_fwd, _swish_dense_tap_bwd)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,20 +177,35 @@ class TanhGaussianPolicy:
         return tuple(jax.lax.stop_gradient(layers[f"hidden_{i}"]["kernel"].T)
                      for i in range(len(layers)))
 
+    def zero_taps(self, lead: tuple, dtype=jnp.float32) -> tuple:
+        """Zero taps for `sample_batch(taps=...)`: per layer, zeros shaped like its input and
+        its output, with leading axes `lead` (`dtype`: the network's)."""
+        sizes = (self.obs_size, *self.hidden, self._dist.param_size)
+        return tuple((jnp.zeros((*lead, i), dtype), jnp.zeros((*lead, o), dtype))
+                     for i, o in zip(sizes[:-1], sizes[1:]))
+
     def sample_batch(self, params: dict, obs: jax.Array, keys: jax.Array,
-                     kernels_t: tuple[jax.Array, ...], swish_remat: bool = True) -> jax.Array:
+                     kernels_t: tuple[jax.Array, ...], swish_remat: bool = True,
+                     taps: tuple | None = None) -> jax.Array:
         """`sample` for a batch: obs (B, obs_size), keys (B, 2) -> (B, action_size), the
         same values as vmap(sample); the network's products run through `dense_t`, so the
         backward reads `kernels_t` (from `kernels_t(params)`) instead of transposing every
         kernel at every step. Batched on purpose: under vmap, the kernels' cotangents would
         be made per example and then summed. `swish_remat`: each hidden activation and the
         product after it as one `swish_dense_t`, whose backward keeps only the
-        pre-activation (the same values and gradient bit for bit, fewer residuals)."""
+        pre-activation (the same values and gradient bit for bit, fewer residuals). `taps`
+        (`zero_taps((B,))`): the layers run as `dense_tap` / `swish_dense_tap`, whose
+        backward hands each kernel's cotangent's factors out through the taps' cotangents
+        and gives the kernels none (`ILDConfig.kernel_grad_group`)."""
         layers = params["net"]["params"]
         x = jax.lax.stop_gradient(params["norm"])(obs)
         for i, kt in enumerate(kernels_t):
             layer = layers[f"hidden_{i}"]
-            if i == 0:
+            if taps is not None:  # the kernels' cotangent factors out through the taps
+                fn = dense_tap if i == 0 or not swish_remat else swish_dense_tap
+                x = x if i == 0 or swish_remat else ACTIVATION(x)
+                x = fn(x, layer["kernel"], kt, taps[i])
+            elif i == 0:
                 x = dense_t(x, layer["kernel"], kt)
             elif swish_remat:  # x is the previous layer's pre-activation
                 x = swish_dense_t(x, layer["kernel"], kt)

@@ -148,6 +148,21 @@ class ILDConfig:
     methods.ild.paired --task T --variant task,swish_remat=false --variant task
     --apg-physics brax --forward`, results/swish_remat/): about 9-18 ms an update on the
     spring tasks, the policy's share. False: swish and the product apart, as before."""
+    kernel_grad_group: int = 1
+    """G > 1 (with `transposed_backward`): the rollout runs as T / G groups of G steps
+    (`train.make_step_group`, G must divide the episode), whose backward makes each policy
+    kernel's cotangent once per group, one product over G x B rows, instead of once per step
+    over the batch's B rows (at B = 32 the 512 x 256 kernel's per-step product is bound by
+    writing its output, 1.79x the forward's product: results/JOURNAL.md, session 57). The
+    same function; its loss and gradient equal G = 1's to float32 round-off (the kernels'
+    sums over steps in another order, and XLA compiles the grouped loop's physics apart:
+    pointmass's loss bit for bit, tests/test_ild.py; the 8 brax tasks over 16 steps behind
+    -m slow). Paired on one core at B = 32 with G = 8 (session 61, `python -m
+    methods.ild.paired --task T --variant task --variant task,kernel_grad_group=8
+    --apg-physics brax --forward`, results/kernel_grad_group/): the update 1.10x faster on
+    acrobot and 1.08x on pointmass, whose policy is most of the update; 1.02-1.03x on hopper
+    and humanoid, 0.99-1.01x on walker2d, ant and reacher. Off (1) by default: a task's
+    recorded ILD cells stand until a task override turns it on and they are re-run."""
     closed_form_adjoint: bool = False
     """Differentiate the training rollouts' physics through the task's closed-form step
     (`tasks.core.with_closed_form_adjoint`; acrobot's double-pendulum equations) instead of
@@ -250,7 +265,11 @@ class ILDConfig:
                                                      f"{getattr(self, name)}"))
         checks.append((self.lr_warmup >= 0,
                        f"lr_warmup must be >= 0 updates, got {self.lr_warmup}"))
-        for name in ("num_envs", "updates", "truncation", "bc_samples", "chunk"):
+        checks.append((self.kernel_grad_group == 1 or self.transposed_backward,
+                       "kernel_grad_group > 1 groups sample_batch's kernel cotangents; set "
+                       "transposed_backward True or kernel_grad_group 1"))
+        for name in ("num_envs", "updates", "truncation", "bc_samples", "chunk",
+                     "kernel_grad_group"):
             checks.append((getattr(self, name) >= 1, f"{name} must be >= 1, got "
                                                       f"{getattr(self, name)}"))
         for ok, msg in checks:

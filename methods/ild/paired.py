@@ -195,10 +195,15 @@ def summarize(rows: list[dict]) -> list[dict]:
     the fastest round's update over the fastest round's forward. Noise on a shared machine
     only adds time, so the fastest rounds give a second estimate, free of what one slow
     side adds to a round's ratio (session 54: hopper's three runs 3.02-3.31x against
-    medians of 2.97-3.69x; ant's two 3.21x and 3.51x against 3.13x and 3.31x)."""
+    medians of 2.97-3.69x; ant's two 3.21x and 3.51x against 3.13x and 3.31x). Every variant
+    after a task's first gets `speedup` (with its min and max): the median over the rounds
+    both ran of the first variant's seconds over this one's, round by round."""
     groups = {}
     for r in rows:
         groups.setdefault((r["task"], r["variant"]), []).append(r)
+    first = {}
+    for task, variant in groups:
+        first.setdefault(task, variant)
     out = []
     for (task, variant), rs in groups.items():
         secs = [r["seconds"] for r in rs]
@@ -214,6 +219,13 @@ def summarize(rows: list[dict]) -> list[dict]:
             row.update(forward_seconds=statistics.median(fwd),
                        over_forward=statistics.median(over), over_forward_min=min(over),
                        over_forward_max=max(over), fastest_over_forward=min(secs) / min(fwd))
+        if variant != first[task]:
+            by_round = {r.get("round"): r["seconds"] for r in groups[task, first[task]]}
+            ups = [by_round[r.get("round")] / r["seconds"] for r in rs
+                   if r.get("round") in by_round]
+            if ups:
+                row.update(speedup=statistics.median(ups), speedup_min=min(ups),
+                           speedup_max=max(ups), speedup_over=first[task])
         out.append(row)
     return out
 
@@ -230,7 +242,11 @@ def summary_lines(rows: list[dict]) -> list[str]:
                      f"{s['over_forward']:.3f} [{s['over_forward_min']:.3f}, "
                      f"{s['over_forward_max']:.3f}], fastest rounds "
                      f"{s['fastest_over_forward']:.3f}")
-        lines.append(f"{line} over {s['rounds']} rounds")
+        line += f" over {s['rounds']} rounds"
+        if "speedup" in s:
+            line += (f"; {s['speedup']:.3f}x as fast as {s['speedup_over']} "
+                     f"[{s['speedup_min']:.3f}, {s['speedup_max']:.3f}]")
+        lines.append(line)
     return lines
 
 

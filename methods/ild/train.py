@@ -17,7 +17,7 @@ import optax
 
 from bench.api import Policy, TrainResult
 from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc_pairs,
-                                   make_bc_step)
+                                   contract_leading, make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 from tasks.core import (has_substep_loop, with_closed_form_adjoint, with_hand_adjoint,
@@ -55,7 +55,7 @@ class StateNorm:
 
 
 def sample_actions(policy: TanhGaussianPolicy, params, obs: jax.Array, key: jax.Array,
-                   kernels_t, swish_remat: bool = True) -> jax.Array:
+                   kernels_t, swish_remat: bool = True, taps=None) -> jax.Array:
     """One rollout step's actions for a batch of observations (B, obs_size), from B per-env
     keys split off `key`: `sample_batch` with the kernels transposed once outside the loop
     (`kernels_t`, `transposed_backward`; its hidden layers keep only their pre-activations
@@ -64,7 +64,8 @@ def sample_actions(policy: TanhGaussianPolicy, params, obs: jax.Array, key: jax.
     keys = jax.random.split(key, obs.shape[0])
     if kernels_t is None:
         return jax.vmap(policy.sample, in_axes=(None, 0, 0))(params, obs, keys)
-    return policy.sample_batch(params, obs, keys, kernels_t, swish_remat=swish_remat)
+    return policy.sample_batch(params, obs, keys, kernels_t, swish_remat=swish_remat,
+                               taps=taps)
 
 
 def make_physics_step(task, config: ILDConfig):
@@ -91,6 +92,54 @@ def make_physics_step(task, config: ILDConfig):
     return step
 
 
+def make_step_group(policy: TanhGaussianPolicy, physics_step, config: ILDConfig):
+    """group(s, (ts, keys), params, kernels_t) -> (s', (matched, actions, dones)): G =
+    `config.kernel_grad_group` rollout steps as a lax.scan in a custom VJP. Its forward runs
+    the policy through `sample_batch`'s taps, so the backward of each of the G steps hands
+    out each layer's input and output cotangent instead of adding x^T g into the kernel's
+    cotangent; the group's backward then makes each kernel's cotangent once, one product
+    over the G x B rows. The same function: values and gradient to float32 round-off (the
+    kernels' sums over steps in another order, and the loop's body compiled apart)."""
+    G = config.kernel_grad_group
+
+    def run(s, xs, params, kernels_t, taps):
+        def body(s, x):
+            (t, k), tap = x
+            a = sample_actions(policy, params, s.obs, k, kernels_t, config.swish_remat, tap)
+            s2, m, a = physics_step(s, a, t)
+            return s2, (m, a, s2.done)
+
+        step_fn = jax.checkpoint(body, prevent_cse=False) if config.remat else body
+        return jax.lax.scan(step_fn, s, (xs, taps))
+
+    def zero_taps(s, kernels_t):
+        return policy.zero_taps((G, s.obs.shape[0]), kernels_t[0].dtype)
+
+    @jax.custom_vjp
+    def group(s, xs, params, kernels_t):
+        return run(s, xs, params, kernels_t, zero_taps(s, kernels_t))
+
+    def fwd(s, xs, params, kernels_t):
+        taps = zero_taps(s, kernels_t)
+        out, vjp = jax.vjp(lambda s_, p_, tp: run(s_, xs, p_, kernels_t, tp), s, params,
+                           taps)
+        return out, vjp
+
+    def bwd(vjp, ct):
+        ct_s, ct_p, ct_taps = vjp(ct)
+        # the taps' cotangents are each layer's (input, output cotangent) at the G steps:
+        # the kernel's cotangent is their product over the G x B rows
+        layers = dict(ct_p["net"]["params"])
+        for i, factors in enumerate(ct_taps):
+            layer = layers[f"hidden_{i}"]
+            layers[f"hidden_{i}"] = {**layer,
+                                     "kernel": layer["kernel"] + contract_leading(*factors)}
+        return ct_s, None, {**ct_p, "net": {**ct_p["net"], "params": layers}}, None
+
+    group.defvjp(fwd, bwd)
+    return group
+
+
 def episode_loss(x: jax.Array, alive: jax.Array, goals: jax.Array, config: ILDConfig):
     """The update's loss of a batch of normalized episodes x (B, T, D) against the goals
     (K, T, D), `alive` (B, T) masking states after a termination: (loss, raw loss, per-env
@@ -112,6 +161,11 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     goals: (K, T, D) normalized demo states s_1..s_T."""
     env, T = task.env, task.episode_length
     physics_step = make_physics_step(task, config)
+    group = make_step_group(policy, physics_step, config)
+    if T % config.kernel_grad_group:
+        raise ValueError(f"kernel_grad_group={config.kernel_grad_group} does not divide "
+                         f"{task.spec.name}'s episode of {T} steps; set it to a divisor of "
+                         f"{T} (1: off)")
 
     def loss_fn(params, key, init_keys):
         k_act = key
@@ -129,8 +183,14 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         # jax.checkpoint adds by default only costs time (7-10% of an update measured on
         # hopper, walker2d and ant, same gradient; results/JOURNAL.md).
         step_fn = jax.checkpoint(body, prevent_cse=False) if config.remat else body
-        _, (ms, acts, dones) = jax.lax.scan(step_fn, s0,
-                                            (jnp.arange(T), jax.random.split(k_act, T)))
+        steps = (jnp.arange(T), jax.random.split(k_act, T))
+        if config.kernel_grad_group > 1:
+            G = config.kernel_grad_group
+            steps = jax.tree.map(lambda v: v.reshape(T // G, G, *v.shape[1:]), steps)
+            _, out = jax.lax.scan(lambda s, xs: group(s, xs, params, kernels_t), s0, steps)
+            ms, acts, dones = jax.tree.map(lambda v: v.reshape(T, *v.shape[2:]), out)
+        else:
+            _, (ms, acts, dones) = jax.lax.scan(step_fn, s0, steps)
         x = norm(jnp.swapaxes(ms, 0, 1))  # (B, T, D)
         # alive[b, t]: no termination before step t (the terminating state itself counts).
         before = jnp.cumsum(jnp.swapaxes(dones, 0, 1), axis=1) - jnp.swapaxes(dones, 0, 1)

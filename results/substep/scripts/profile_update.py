@@ -3,6 +3,7 @@
 benchmark's `forward` row, each traced over 5 calls under `jax.profiler` (CPU):
 
     python results/substep/scripts/profile_update.py hopper [--batch 32] [--top 15]
+        [--variant task,FIELD=VALUE]
 
 Prints seconds per call without the profiler first (min over 3 rounds of 10 calls), then per
 program the op events per call, the top operation kinds (the name without its number) and
@@ -19,9 +20,9 @@ import re
 
 import jax
 
-from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.benchmark import speed_setup
 from methods.ild.config import ILDConfig
-from methods.ild.paired import compiled_chunk, compiled_forward
+from methods.ild.paired import compiled_chunk, compiled_forward, parse_variant
 from tasks import make_task
 from timing import best_seconds, op_kind, xla_op_events
 
@@ -53,11 +54,13 @@ def main(argv=None):
     p.add_argument("task")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--top", type=int, default=15)
+    p.add_argument("--variant", default="task",
+                   help="the update's config, as methods.ild.paired's --variant")
     a = p.parse_args(argv)
     task = make_task(a.task)
     base = ILDConfig(num_envs=a.batch)
     setup = speed_setup(task, base)
-    chunk, state, n = compiled_chunk(task, task_config(a.task, a.batch), setup)
+    chunk, state, n = compiled_chunk(task, parse_variant(a.variant, a.batch, a.task), setup)
     forward, params = compiled_forward(task, base, setup)
     update_s = best_seconds(lambda: chunk(state, n), calls=10)
     forward_s = best_seconds(lambda: forward(params), calls=10)
