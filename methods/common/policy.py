@@ -91,12 +91,19 @@ def _swish_dense_t_fwd(h, kernel, kernel_t):
     return swish_dense_t(h, kernel, kernel_t), (h, kernel_t)
 
 
-def _swish_dense_t_bwd(res, g):
-    h, kernel_t = res
+def _swish_backward(h: jax.Array, kernel_t: jax.Array, g: jax.Array):
+    """swish(h) @ kernel's backward from the pre-activation h alone: (h's cotangent,
+    swish(h)), the second the kernel cotangent's input factor."""
     s = jax.nn.sigmoid(h)
     gx = g @ kernel_t
     # swish = h * sigmoid(h): the product's two cotangents, sigmoid's through s * (1 - s)
-    return gx * s + (gx * h) * (s * (1 - s)), contract_leading(h * s, g), None
+    return gx * s + (gx * h) * (s * (1 - s)), h * s
+
+
+def _swish_dense_t_bwd(res, g):
+    h, kernel_t = res
+    ct_h, swish = _swish_backward(h, kernel_t, g)
+    return ct_h, contract_leading(swish, g), None
 
 
 swish_dense_t.defvjp(_swish_dense_t_fwd, _swish_dense_t_bwd)
@@ -136,9 +143,8 @@ def _swish_dense_tap_fwd(h, kernel, kernel_t, tap):
 
 def _swish_dense_tap_bwd(res, g):
     h, kernel_t = res
-    s = jax.nn.sigmoid(h)
-    gx = g @ kernel_t
-    return gx * s + (gx * h) * (s * (1 - s)), None, None, (h * s, g)
+    ct_h, swish = _swish_backward(h, kernel_t, g)
+    return ct_h, None, None, (swish, g)
 
 
 swish_dense_tap.defvjp(_swish_dense_tap_fwd, _swish_dense_tap_bwd)

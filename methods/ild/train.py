@@ -92,25 +92,41 @@ def make_physics_step(task, config: ILDConfig):
     return step
 
 
-def make_step_group(policy: TanhGaussianPolicy, physics_step, config: ILDConfig):
+def make_rollout_step(policy: TanhGaussianPolicy, physics_step, config: ILDConfig):
+    """step(s, (t, key), params, kernels_t, tap=None) -> (s', (matched, actions, done)): one
+    step of the training rollout, the policy's sample (through `tap`, `sample_batch`'s
+    taps, for `make_step_group`) and then `physics_step`."""
+    def step(s, xs, params, kernels_t, tap=None):
+        t, k = xs
+        a = sample_actions(policy, params, s.obs, k, kernels_t, config.swish_remat, tap)
+        s2, m, a = physics_step(s, a, t)
+        return s2, (m, a, s2.done)
+
+    return step
+
+
+def scan_body(body, config: ILDConfig):
+    """A rollout scan's body as the loop runs it: rematerialized in the backward with
+    `remat`. prevent_cse=False: inside a scan the body is not unrolled, so the CSE barrier
+    jax.checkpoint adds by default only costs time (7-10% of an update measured on hopper,
+    walker2d and ant, same gradient; results/JOURNAL.md)."""
+    return jax.checkpoint(body, prevent_cse=False) if config.remat else body
+
+
+def make_step_group(policy: TanhGaussianPolicy, step, config: ILDConfig):
     """group(s, (ts, keys), params, kernels_t) -> (s', (matched, actions, dones)): G =
-    `config.kernel_grad_group` rollout steps as a lax.scan in a custom VJP. Its forward runs
-    the policy through `sample_batch`'s taps, so the backward of each of the G steps hands
-    out each layer's input and output cotangent instead of adding x^T g into the kernel's
-    cotangent; the group's backward then makes each kernel's cotangent once, one product
-    over the G x B rows. The same function: values and gradient to float32 round-off (the
-    kernels' sums over steps in another order, and the loop's body compiled apart)."""
+    `config.kernel_grad_group` rollout steps (`make_rollout_step`'s `step`) as a lax.scan
+    in a custom VJP. Its forward runs the policy through `sample_batch`'s taps, so the
+    backward of each of the G steps hands out each layer's input and output cotangent
+    instead of adding x^T g into the kernel's cotangent; the group's backward then makes
+    each kernel's cotangent once, one product over the G x B rows. The same function:
+    values and gradient to float32 round-off (the kernels' sums over steps in another
+    order, and the loop's body compiled apart)."""
     G = config.kernel_grad_group
 
     def run(s, xs, params, kernels_t, taps):
-        def body(s, x):
-            (t, k), tap = x
-            a = sample_actions(policy, params, s.obs, k, kernels_t, config.swish_remat, tap)
-            s2, m, a = physics_step(s, a, t)
-            return s2, (m, a, s2.done)
-
-        step_fn = jax.checkpoint(body, prevent_cse=False) if config.remat else body
-        return jax.lax.scan(step_fn, s, (xs, taps))
+        body = scan_body(lambda s_, x: step(s_, x[0], params, kernels_t, x[1]), config)
+        return jax.lax.scan(body, s, (xs, taps))
 
     def zero_taps(s, kernels_t):
         return policy.zero_taps((G, s.obs.shape[0]), kernels_t[0].dtype)
@@ -160,12 +176,12 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
     """loss(params, key) over a batch of `num_envs` rollouts of the task's episode length.
     goals: (K, T, D) normalized demo states s_1..s_T."""
     env, T = task.env, task.episode_length
-    physics_step = make_physics_step(task, config)
-    group = make_step_group(policy, physics_step, config)
     if T % config.kernel_grad_group:
         raise ValueError(f"kernel_grad_group={config.kernel_grad_group} does not divide "
                          f"{task.spec.name}'s episode of {T} steps; set it to a divisor of "
                          f"{T} (1: off)")
+    step = make_rollout_step(policy, make_physics_step(task, config), config)
+    group = make_step_group(policy, step, config) if config.kernel_grad_group > 1 else None
 
     def loss_fn(params, key, init_keys):
         k_act = key
@@ -173,24 +189,15 @@ def make_rollout_loss(task, policy: TanhGaussianPolicy, goals: jax.Array, norm: 
         # Made once here, outside the loop: the policy's backward then reads them as they are.
         kernels_t = policy.kernels_t(params) if config.transposed_backward else None
 
-        def body(s, xs):
-            t, k = xs
-            a = sample_actions(policy, params, s.obs, k, kernels_t, config.swish_remat)
-            s2, m, a = physics_step(s, a, t)
-            return s2, (m, a, s2.done)
-
-        # prevent_cse=False: inside a scan the body is not unrolled, so the CSE barrier
-        # jax.checkpoint adds by default only costs time (7-10% of an update measured on
-        # hopper, walker2d and ant, same gradient; results/JOURNAL.md).
-        step_fn = jax.checkpoint(body, prevent_cse=False) if config.remat else body
         steps = (jnp.arange(T), jax.random.split(k_act, T))
-        if config.kernel_grad_group > 1:
+        if group is not None:
             G = config.kernel_grad_group
             steps = jax.tree.map(lambda v: v.reshape(T // G, G, *v.shape[1:]), steps)
             _, out = jax.lax.scan(lambda s, xs: group(s, xs, params, kernels_t), s0, steps)
             ms, acts, dones = jax.tree.map(lambda v: v.reshape(T, *v.shape[2:]), out)
         else:
-            _, (ms, acts, dones) = jax.lax.scan(step_fn, s0, steps)
+            body = scan_body(lambda s, xs: step(s, xs, params, kernels_t), config)
+            _, (ms, acts, dones) = jax.lax.scan(body, s0, steps)
         x = norm(jnp.swapaxes(ms, 0, 1))  # (B, T, D)
         # alive[b, t]: no termination before step t (the terminating state itself counts).
         before = jnp.cumsum(jnp.swapaxes(dones, 0, 1), axis=1) - jnp.swapaxes(dones, 0, 1)
