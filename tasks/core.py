@@ -298,13 +298,52 @@ def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
                                  rotary=rotary)
 
 
+def positional_joints_refusal(task: Task) -> str | None:
+    """Why `with_positional_joints` cannot rewrite `task` (None where it can): it is brax's
+    positional substep for a scene whose joints are hinges and slides
+    (`tasks.positional_joints.joint_rows`), without fluid."""
+    backend = getattr(task.spec, "backend", None)
+    if backend != "positional" or not has_substep_loop(task):
+        return (f"task {task.name!r} runs {backend!r} physics; positional_joints rewrites "
+                "brax's positional substep (reacher, inverted_pendulum): leave it False")
+    from tasks.positional_joints import joint_rows
+    sys = task.env.unwrapped.sys
+    rows = joint_rows(sys)
+    if isinstance(rows, str):
+        return (f"task {task.name!r}: {rows}; positional_joints models hinges and slides "
+                "only: leave it False")
+    if sys.enable_fluid:
+        return (f"task {task.name!r} has fluid forces, which positional_joints' step does "
+                "not apply: leave it False")
+    return None
+
+
+def with_positional_joints(task: Task, remat: bool = True, lean: bool = False) -> Task:
+    """A fresh copy of brax positional task `task` whose substeps run
+    `tasks.positional_joints.step`: brax's positional substep with the joints' position-level
+    update and forces written for hinges and slides, and the conversions to link and joint
+    frames and the inverse inertia by `tasks.spring_adjoint`'s hand-written VJPs. The same
+    function and gradient to float32 round-off (tests/test_positional_joints.py). `remat`
+    and `lean` as `with_substep_remat` and `with_lean_substeps`. Errors for a task it does
+    not fit (`positional_joints_refusal`)."""
+    why = positional_joints_refusal(task)
+    if why is None and lean:
+        why = lean_substeps_refusal(task)
+    if why is not None:
+        raise ValueError(why)
+    return _rebuilt_substep_loop(task, remat=remat, lean=lean, option="positional_joints",
+                                 positional=True)
+
+
 def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
                           hand_adjoint: bool = False, hinges: bool = False,
-                          planar: bool = False, rotary: bool = False) -> Task:
+                          planar: bool = False, rotary: bool = False,
+                          positional: bool = False) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
     last carrying the incoming q and qd (`lean`), and/or each substep
-    `tasks.spring_adjoint.step` (`hand_adjoint`). `option`: the config field the errors name
+    `tasks.spring_adjoint.step` (`hand_adjoint`) or `tasks.positional_joints.step`
+    (`positional`). `option`: the config field the errors name
     (and, after 'with_', the function to apply first)."""
     if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
@@ -322,6 +361,9 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
     if hand_adjoint:
         from tasks.spring_adjoint import step
         substep_fn = functools.partial(step, hinges=hinges, planar=planar, rotary=rotary)
+    elif positional:
+        from tasks.positional_joints import joint_rows, step
+        substep_fn = functools.partial(step, rows=joint_rows(given.sys), hand=True)
     else:
         substep_fn = inner._pipeline.step
 

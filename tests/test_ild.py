@@ -1180,7 +1180,8 @@ def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(t
 def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     """methods.ild.paired: every variant is timed once between two of APG's epochs and
     each round's ratio is APG's seconds per update over the variant's, from that round; APG's
-    first two epochs (compiles, on newer JAX both) are no round."""
+    first two epochs (compiles, on newer JAX both) are no round. Without APG (`apg=False`,
+    `--apg-physics none`) the variants run round after round, a first round left out."""
     from methods.ild import paired
     from methods.ild.benchmark import APG_WARMUP_EPOCHS
     calls = []
@@ -1220,8 +1221,18 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     with pytest.raises(ConfigError, match="no config field 'nope'"):
         paired.parse_variant("nope", 8)
     monkeypatch.setattr(paired, "reward_gradient_norm", lambda task: 0.0)
-    with pytest.raises(ValueError, match="'pointmass'.*no gradient"):
+    with pytest.raises(ValueError, match="'pointmass'.*no gradient.*--apg-physics none"):
         paired.run("pointmass", ["chunk=2"], batch=4, rounds=1, repeats=1)
+    # --apg-physics none: no APG epoch, the variants and the forward alone, one warm-up round
+    calls.clear()
+    rows = paired.run("pointmass", ["chunk=2", "remat"], batch=4, rounds=2, repeats=3,
+                      forward=True, apg=False)
+    assert calls == [] and [(r["variant"], r["round"]) for r in rows] == [
+        ("chunk=2", 0), ("chunk=2", 1), ("remat", 0), ("remat", 1)]
+    assert all(r["apg_physics"] == "none" and r["apg_seconds"] != r["apg_seconds"]
+               and 0 < r["forward_seconds"] < r["seconds"] for r in rows)
+    line = paired.summary_lines(rows)[1]
+    assert "APG" not in line and "update / forward" in line and "as fast as chunk=2" in line
     for variants, match in (
             (["chunk=2", "hidden=[64]"], r"'hidden=\[64\]' sets hidden=\(64,\).*one network"),
             (["num_envs=64"], r"'num_envs=64' sets num_envs=64.*--batch \(now 4\)"),

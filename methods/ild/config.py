@@ -222,6 +222,22 @@ class ILDConfig:
     fewer operations (humanoid's update 9% fewer): paired (`--variant task --variant
     task,rotary_joints`, session 53) 1.125x faster on humanoid. Off in the class; since
     session 53 the TASK_OVERRIDES of the tasks in `ROTARY_JOINTS_TASKS` turn it on."""
+    positional_joints: bool = False
+    """On brax's positional backend, for a scene whose joints are hinges and slides
+    (reacher, inverted_pendulum): each substep by `tasks.positional_joints.step`, brax's
+    positional substep with the joints' position-level update written for those kinds
+    alone (brax's treats every joint as a 3-dof one: three signed angles, clips, rotations
+    and Euler angles, where a hinge has one free angle and a slide none), the joints'
+    forces vectorized over the dofs, and the conversions to link and joint frames and the
+    inverse inertia by `tasks.spring_adjoint`'s hand-written VJPs. The same function and
+    gradient to float32 round-off (tests/test_positional_joints.py), in fewer operations.
+    Paired on one core at B = 32 (`python -m methods.ild.paired --task T --variant task
+    --variant task,positional_joints --apg-physics brax --forward`, inverted_pendulum with
+    `--apg-physics none`; session 62, results/positional_joints/): the update 1.61x faster
+    on reacher (update / forward 5.08x -> 3.15x; 2.19x brax's APG, 1.40x without it) and
+    1.68x on inverted_pendulum (5.93x -> 3.53x). Off in the class: on, it changes those
+    tasks' config and run ids, so their cells would have to be re-run. Tasks on other
+    backends, or with other joints, refuse it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -255,6 +271,9 @@ class ILDConfig:
             *((self.hand_adjoint or not getattr(self, piece),
                f"{piece} is a piece of hand_adjoint's spring substep; set hand_adjoint "
                f"True or {piece} False") for piece in HAND_ADJOINT_PIECES),
+            (not (self.positional_joints and (self.hand_adjoint or self.closed_form_adjoint)),
+             "positional_joints rewrites brax's positional substep, hand_adjoint the spring "
+             "one and closed_form_adjoint the whole step; set positional_joints False"),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),

@@ -33,6 +33,9 @@ within seconds of each other, not from two timings minutes apart:
 
     python -m methods.ild.paired --task hopper --variant task --apg-physics brax --forward
 
+`--apg-physics none` times the variants (and `--forward`) without APG, round after round:
+for a task whose reward has no gradient (inverted_pendulum), where APG has nothing to train.
+
 The summary also gives update / forward from the fastest rounds (the fastest update over
 the fastest forward): noise only adds time, and on this machine the per-round ratios of one
 hopper run spread over 3.0-3.9x. `--summarize CSV ...` prints the summary of rows an
@@ -134,14 +137,19 @@ def compiled_forward(task, base: ILDConfig, setup):
 
 
 def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
-        repeats: int = 8, apg_as_shipped: bool = False, forward: bool = False) -> list[dict]:
+        repeats: int = 8, apg_as_shipped: bool = False, forward: bool = False,
+        apg: bool = True) -> list[dict]:
+    """`apg=False` (`--apg-physics none`): the variants (and the forward) alone, round after
+    round, for a task whose reward has no gradient (inverted_pendulum); rows get no APG
+    columns' values (NaN)."""
     base = ILDConfig(num_envs=batch)
     configs = {v: parse_variant(v, batch, task_name) for v in variants}
-    physics = apg_physics(configs, base, brax=apg_as_shipped)
+    physics = apg_physics(configs, base, brax=apg_as_shipped) if apg else "none"
     task = make_task(task_name)
-    if reward_gradient_norm(task) == 0.0:
+    if apg and reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
-                         "would time a forward rollout; pick a task with a reward gradient")
+                         "would time a forward rollout; pick a task with a reward gradient, or time the "
+                         "variants alone with --apg-physics none")
     setup = speed_setup(task, base)
     steps = batch * task.episode_length
     timed = {}
@@ -165,11 +173,17 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
             jax.block_until_ready(state)
             seconds[v].append((time.perf_counter() - t0) / (calls * configs[v].chunk))
 
-    apg_task = apg_env(task, physics)
-    # apg_epochs leaves out APG's warm-up epochs (they compile); time_ild runs after those
-    # too, and only its last `rounds` timings, made beside APG's steady epochs, are rounds.
-    sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
-    apg_s = [steps / x for x in sps]
+    if apg:
+        apg_task = apg_env(task, physics)
+        # apg_epochs leaves out APG's warm-up epochs (they compile); time_ild runs after
+        # those too, and only its last `rounds` timings, made beside APG's steady epochs,
+        # are rounds.
+        sps = apg_epochs(apg_task, batch, base.hidden, repeats, rounds, time_ild)
+        apg_s = [steps / x for x in sps]
+    else:  # round 0 warms up, as APG's first epochs would
+        for r in range(rounds + 1):
+            time_ild(r)
+        apg_s = [float("nan")] * rounds
     ild = {v: s[-len(apg_s):] for v, s in seconds.items()}  # the rounds after APG compiled
     fwd_s = fwd_seconds[-len(apg_s):]
     settings = speed_settings()
@@ -178,7 +192,8 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
         for r, (s, a) in enumerate(zip(ild[v], apg_s)):
             rows.append({"task": task_name, "backend": task.spec.backend, "batch": batch,
                          "variant": v, "round": r, "seconds": float(f"{s:.4g}"),
-                         "apg_seconds": float(f"{a:.4g}"), "over_apg": round(a / s, 3),
+                         "apg_seconds": float(f"{a:.4g}"),
+                         "over_apg": round(a / s, 3) if a == a else a,
                          "apg_physics": physics,
                          **({"forward_seconds": float(f"{fwd_s[r]:.4g}"),
                              "over_forward": round(s / fwd_s[r], 3)} if forward else {}),
@@ -234,9 +249,10 @@ def summary_lines(rows: list[dict]) -> list[str]:
     """One printed line per task and variant of `summarize(rows)`."""
     lines = []
     for s in summarize(rows):
-        line = (f"{s['task']} {s['variant']}: {s['seconds']:.4f} s/update (APG "
-                f"{s['apg_seconds']:.4f}), over APG median {s['over_apg']:.3f} "
-                f"[{s['over_apg_min']:.3f}, {s['over_apg_max']:.3f}]")
+        line = f"{s['task']} {s['variant']}: {s['seconds']:.4f} s/update"
+        if s["apg_seconds"] == s["apg_seconds"]:  # NaN: timed without APG
+            line += (f" (APG {s['apg_seconds']:.4f}), over APG median {s['over_apg']:.3f} "
+                     f"[{s['over_apg_min']:.3f}, {s['over_apg_max']:.3f}]")
         if "over_forward" in s:
             line += (f"; update / forward ({s['forward_seconds']:.4f} s) median "
                      f"{s['over_forward']:.3f} [{s['over_forward_min']:.3f}, "
@@ -262,9 +278,10 @@ def main(argv=None):
     p.add_argument("--variant", action="append", default=None,
                    help="comma-separated ILDConfig fields; a leading 'task' starts from the "
                         "task's own config (its TASK_OVERRIDES)")
-    p.add_argument("--apg-physics", choices=("auto", "brax"), default="auto",
+    p.add_argument("--apg-physics", choices=("auto", "brax", "none"), default="auto",
                    help="auto: APG on the physics the variants rewrite (like with like); "
-                        "brax: brax's APG as shipped, whatever the variants set")
+                        "brax: brax's APG as shipped, whatever the variants set; none: no "
+                        "APG, the variants (and --forward) alone")
     p.add_argument("--forward", action="store_true",
                    help="also time the forward rollout (the benchmark's forward row) in each "
                         "round: every row gets that round's update / forward")
@@ -289,7 +306,8 @@ def main(argv=None):
                 f"{a.repeats}")
     try:
         rows = run(a.task, a.variant, a.batch, a.rounds, a.repeats,
-                   apg_as_shipped=a.apg_physics == "brax", forward=a.forward)
+                   apg_as_shipped=a.apg_physics == "brax", forward=a.forward,
+                   apg=a.apg_physics != "none")
     except (ValueError, ConfigError) as e:
         p.error(str(e))
     if a.out:

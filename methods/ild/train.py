@@ -21,8 +21,8 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 from tasks.core import (has_substep_loop, with_closed_form_adjoint, with_hand_adjoint,
-                        with_lean_substeps, with_small_dots, with_substep_remat,
-                        without_joint_limits)
+                        with_lean_substeps, with_positional_joints, with_small_dots,
+                        with_substep_remat, without_joint_limits)
 
 
 @flax.struct.dataclass
@@ -303,7 +303,8 @@ def rollout_physics(task, config: ILDConfig):
     without joint limits, with each physics substep rematerialized (where the task has brax's
     substep loop: `substep_remat` is on by default and has nothing to act on elsewhere),
     without the joint coordinates of all but each step's last substep (`lean_substeps`),
-    with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`), and/or
+    with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`) or brax's
+    positional substep for hinges and slides (`positional_joints`), and/or
     with small matrix products as multiply-and-sum, or differentiated through its
     closed-form step (`closed_form_adjoint`), as configured."""
     if not config.joint_limits:
@@ -314,6 +315,9 @@ def rollout_physics(task, config: ILDConfig):
         task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps,
                                  hinges=config.hinge_forces, planar=config.planar_root,
                                  rotary=config.rotary_joints)
+    elif config.positional_joints:
+        task = with_positional_joints(task, remat=config.substep_remat,
+                                      lean=config.lean_substeps)
     elif config.lean_substeps:
         task = with_lean_substeps(task, remat=config.substep_remat)
     elif config.substep_remat and has_substep_loop(task):
