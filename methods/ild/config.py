@@ -234,7 +234,8 @@ class ILDConfig:
     Paired on one core at B = 32 (`python -m methods.ild.paired --task T --variant task
     --variant task,positional_joints --apg-physics brax --forward`, inverted_pendulum with
     `--apg-physics none`; session 62, results/positional_joints/): the update 1.61x faster
-    on reacher (update / forward 5.08x -> 3.15x; 2.19x brax's APG, 1.40x without it) and
+    on reacher (update / forward 5.08x -> 3.15x, 3.03x in a second run; 2.19x brax's APG,
+    1.40x without it) and
     1.68x on inverted_pendulum (5.93x -> 3.53x). Off in the class: on, it changes those
     tasks' config and run ids, so their cells would have to be re-run. Tasks on other
     backends, or with other joints, refuse it."""
