@@ -322,7 +322,8 @@ def with_positional_joints(task: Task, remat: bool = True, lean: bool = False) -
     """A fresh copy of brax positional task `task` whose substeps run
     `tasks.positional_joints.step`: brax's positional substep with the joints' position-level
     update and forces written for hinges and slides, and the conversions to link and joint
-    frames and the inverse inertia by `tasks.spring_adjoint`'s hand-written VJPs. The same
+    frames, the inverse inertia, the joint forces' move to the links and the integration by
+    `tasks.spring_adjoint`'s hand-written VJPs. The same
     function and gradient to float32 round-off (tests/test_positional_joints.py). `remat`
     and `lean` as `with_substep_remat` and `with_lean_substeps`. Errors for a task it does
     not fit (`positional_joints_refusal`)."""

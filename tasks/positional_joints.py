@@ -84,9 +84,7 @@ def joint_rows(sys) -> JointRows | str:
     joint must be a hinge (one angular axis, no slide) or slides alone (no angular axis), on
     brax's right-handed joint frames; no free joint. Needs `sys`'s joint data concrete (not
     traced)."""
-    try:
-        dof_motion = jax.device_get(sys.dof.motion)
-    except jax.errors.ConcretizationTypeError:
+    if isinstance(sys.dof.motion.ang, jax.core.Tracer):
         return "its joint axes are traced (not known while tracing)"
     if "f" in sys.link_types:
         return "it has a free joint"
@@ -96,7 +94,6 @@ def joint_rows(sys) -> JointRows | str:
     lo, hi = (np.asarray(x, np.float64) for x in limit)
     vel, ang = np.asarray(motion.vel), np.asarray(motion.ang)
     axes = np.asarray(frame.ang)
-    del dof_motion
     slide_row = np.any(vel != 0, axis=-1)                     # (L, 3)
     turn_row = np.any(ang != 0, axis=-1)
     hinge = turn_row[:, 0] & ~turn_row[:, 1:].any(-1) & ~slide_row.any(-1)
@@ -171,25 +168,20 @@ def acceleration_update(sys, state: State, tau: jax.Array, hand: bool = False) -
     """`brax.positional.joints.acceleration_update(sys, state, tau)` for a scene without free
     joints, vectorized over the dofs: per link, the sum of its dofs' tau times their axes,
     less the constraint damping of the joint motion (brax's `_damp`), then moved to the
-    links' centres of mass (`hand`: by `tasks.spring_adjoint._joint_to_link_forces`, the
-    same tail with a hand-written VJP)."""
+    links' centres of mass by brax's tail as `tasks.spring_adjoint` writes it (the spring
+    substep's is the same): `_joint_to_link_forces` with its hand-written VJP (`hand`), or
+    its forward through XLA's reverse mode."""
     link = jnp.asarray(sys.dof_link())
     num = sys.num_links()
     ang = jax.ops.segment_sum(tau[:, None] * sys.dof.motion.ang, link, num)
     vel = jax.ops.segment_sum(tau[:, None] * sys.dof.motion.vel, link, num)
     ang = ang - sys.link.constraint_ang_damping[:, None] * state.jd.ang
     vel = vel - sys.link.constraint_vel_damping[:, None] * state.jd.vel
-    if hand:
-        a, v = sa._joint_to_link_forces(tuple(sys.link_parents), ang, vel, state.a_p.rot,
-                                        state.a_p.pos, state.a_c.pos, state.x_i.pos)
-        return Force(ang=a, vel=v)
-    xf = Transform.create(rot=state.a_p.rot).vmap().do(Force(ang=ang, vel=vel))
-    fc = Transform.create(pos=state.a_c.pos - state.x_i.pos).vmap().do(xf)
-    parent_idx = jnp.array(sys.link_parents)
-    x_i_parent = state.x_i.take(parent_idx)
-    fp = Transform.create(pos=state.a_p.pos - x_i_parent.pos).vmap().do(xf)
-    fp = jax.tree.map(lambda x: jax.ops.segment_sum(x, parent_idx, num), fp)
-    return fc - fp
+    args = (tuple(sys.link_parents), ang, vel, state.a_p.rot, state.a_p.pos, state.a_c.pos,
+            state.x_i.pos)
+    a, v = (sa._joint_to_link_forces(*args) if hand
+            else sa._joint_to_link_forces_forward(*args)[0])  # XLA's reverse mode of it
+    return Force(ang=a, vel=v)
 
 
 def integrate_xdd(sys, x_i: Transform, xd_i: Motion, xdd_i: Motion

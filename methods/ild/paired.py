@@ -148,8 +148,8 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
     task = make_task(task_name)
     if apg and reward_gradient_norm(task) == 0.0:
         raise ValueError(f"task {task_name!r}: its reward has no gradient, so brax's APG "
-                         "would time a forward rollout; pick a task with a reward gradient, or time the "
-                         "variants alone with --apg-physics none")
+                         "would time a forward rollout; pick a task with a reward gradient, "
+                         "or time the variants alone with --apg-physics none")
     setup = speed_setup(task, base)
     steps = batch * task.episode_length
     timed = {}
