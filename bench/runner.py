@@ -58,14 +58,39 @@ def git_revision() -> str | None:
         return None
 
 
+def cpu_model(cpuinfo: str | None = None) -> str | None:
+    """The CPU's model as Linux names it, "<model name> (family F, model M)", from
+    /proc/cpuinfo (`cpuinfo`: its text, for tests); None where there is none to read
+    (`platform.processor()` is empty on Linux). Speed ratios move with it: update / forward
+    read 2.91-2.95x on one model and 3.15-3.21x on another for the same code (session 61)."""
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo") as f:
+                cpuinfo = f.read()
+        except OSError:
+            return platform.processor() or None
+    fields = {}
+    for line in cpuinfo.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() not in fields:  # the first processor's
+            fields[key.strip()] = value.strip()
+    name = fields.get("model name")
+    if not name:
+        return platform.processor() or None
+    if "cpu family" in fields and "model" in fields:
+        return f"{name} (family {fields['cpu family']}, model {fields['model']})"
+    return name
+
+
 def speed_settings() -> dict:
-    """The process settings that change speed but no number, as records and the speed CSVs
-    name them: `xla_flags`, the environment's XLA_FLAGS (None unset; XLA's code generator,
-    results/JOURNAL.md, session 28), and `malloc_hugetlb`, glibc's huge-page tunable
-    (bench.malloc; None unset: `ildbench` sets it to "1" where it can act, session 32)."""
+    """What changes speed but no number, as records and the speed CSVs name it: `xla_flags`,
+    the environment's XLA_FLAGS (None unset; XLA's code generator, results/JOURNAL.md,
+    session 28), `malloc_hugetlb`, glibc's huge-page tunable (bench.malloc; None unset:
+    `ildbench` sets it to "1" where it can act, session 32), and `cpu_model` (`cpu_model()`;
+    since session 63)."""
     from bench.malloc import hugetlb
     return {"xla_flags": os.environ.get("XLA_FLAGS") or None,
-            "malloc_hugetlb": hugetlb(os.environ)}
+            "malloc_hugetlb": hugetlb(os.environ), "cpu_model": cpu_model()}
 
 
 def machine() -> dict:

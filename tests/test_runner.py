@@ -263,3 +263,17 @@ def test_final_policy_trajectory_is_stored_beside_the_record(toy, store):
     assert traj.shape == (task.episode_length + 1, task.state_size)
     assert not [n for n in os.listdir(store.root) if n.startswith(".tmp-")]
     assert [r["run_id"] for r in store.records()] == [rec["run_id"]]  # not read as a record
+
+
+def test_cpu_model_names_the_first_processor_and_records_carry_it(toy, store):
+    """Speed ratios move with the CPU model (update / forward 2.91-2.95x on one, 3.15-3.21x
+    on another for the same code: journal, session 61), so records and speed CSVs name it;
+    `platform.processor()` is empty on Linux."""
+    from bench.runner import cpu_model
+    text = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
+            "model name\t: AMD EPYC\n\nprocessor\t: 1\ncpu family\t: 6\nmodel\t\t: 167\n"
+            "model name\t: Other\n")
+    assert cpu_model(text) == "AMD EPYC (family 26, model 2)"
+    assert cpu_model("model name\t: Neoverse\n") == "Neoverse"
+    rec, _ = execute(prepare(_req(seed=3)), store, log=lambda s: None)
+    assert rec["machine"]["cpu_model"] == cpu_model()

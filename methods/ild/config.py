@@ -236,9 +236,10 @@ class ILDConfig:
     `--apg-physics none`; session 62, results/positional_joints/): the update 1.61x faster
     on reacher (update / forward 5.08x -> 3.15x, 3.03x in a second run; 2.19x brax's APG,
     1.40x without it) and
-    1.68x on inverted_pendulum (5.93x -> 3.53x). Off in the class: on, it changes those
-    tasks' config and run ids, so their cells would have to be re-run. Tasks on other
-    backends, or with other joints, refuse it."""
+    1.68x on inverted_pendulum (5.93x -> 3.53x). Off in the class; since session 63 the
+    TASK_OVERRIDES of the tasks in `POSITIONAL_JOINTS_TASKS` turn it on (their 3- and
+    10-minute ILD cells re-run with it). Tasks on other backends, or with other joints,
+    refuse it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -403,3 +404,13 @@ PLANAR_ROOT_TASKS = ("hopper", "walker2d")
 _merge_overrides(PLANAR_ROOT_TASKS, planar_root=True)
 ROTARY_JOINTS_TASKS = ("humanoid",)
 _merge_overrides(ROTARY_JOINTS_TASKS, rotary_joints=True)
+
+# The positional substep with the joints' update written for hinges and slides and the
+# shared pieces' hand-written VJPs (session 62) on the two positional tasks: the same rollout
+# and gradient to float32 round-off (tests/test_positional_joints.py); one core, B = 32,
+# paired against the same lean update through brax's positional step
+# (results/positional_joints/paired_session62_*.csv): updates 1.61x (reacher) and 1.68x
+# (inverted_pendulum) faster, update / forward 3.03-3.15x and 3.53x instead of 5.08x and
+# 5.93x. Session 63 re-ran these tasks' 3- and 10-minute ILD cells with it.
+POSITIONAL_JOINTS_TASKS = ("reacher", "inverted_pendulum")
+_merge_overrides(POSITIONAL_JOINTS_TASKS, positional_joints=True)
