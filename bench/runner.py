@@ -68,12 +68,10 @@ def cpu_model(cpuinfo: str | None = None) -> str | None:
             with open("/proc/cpuinfo") as f:
                 cpuinfo = f.read()
         except OSError:
-            return platform.processor() or None
-    fields = {}
-    for line in cpuinfo.splitlines():
-        key, sep, value = line.partition(":")
-        if sep and key.strip() not in fields:  # the first processor's
-            fields[key.strip()] = value.strip()
+            cpuinfo = ""
+    first = cpuinfo.split("\n\n", 1)[0]  # the first processor's block
+    fields = {key.strip(): value.strip() for key, sep, value in
+              (line.partition(":") for line in first.splitlines()) if sep}
     name = fields.get("model name")
     if not name:
         return platform.processor() or None
