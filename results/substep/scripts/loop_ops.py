@@ -90,6 +90,12 @@ def loops(hlo: str) -> list[dict]:
     return rows
 
 
+def ops_per_call(rows: list[dict]) -> int:
+    """The operations one call runs, estimated from `loops`' rows: each body's operations
+    times its passes per call, summed."""
+    return sum(r["body_ops"] * r["passes"] for r in rows)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("task")
@@ -110,7 +116,7 @@ def main(argv=None):
     out = []
     for call, hlo in texts.items():
         rows = loops(hlo)
-        total = sum(r["body_ops"] * r["passes"] for r in rows)
+        total = ops_per_call(rows)
         by_part = collections.Counter()
         for r in rows:
             by_part[r["part"]] += r["body_ops"] * r["passes"]

@@ -4,7 +4,7 @@
 ones), and their ratio, as `results/substep/scripts/step_vjp_parts.py` times the spring
 substep's pieces.
 
-    python results/positional_joints/scripts/step_parts.py TASK [--batch 32] [--ops]
+    python results/substep/scripts/positional_step_parts.py TASK [--batch 32] [--ops]
 
 --ops: instead of timing, count each piece's operations in XLA's optimized HLO (forward
 and VJP, `loop_ops.loops`' count: what the CPU runtime executes one by one), the measure
@@ -15,19 +15,18 @@ corrections, the velocity projection, the actuators, the inverse kinematics) hol
 substep's VJP up.
 """
 import argparse
-import pathlib
-import sys
 
 import jax
 from brax import actuator, kinematics
 from brax.positional import integrator
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2] / "substep" / "scripts"))
-import tasks.positional_joints as P  # noqa: E402
-import tasks.spring_adjoint as sa  # noqa: E402
-from bench.runner import cpu_model  # noqa: E402
-from tasks import make_task  # noqa: E402
-from timing import print_forward_and_vjp, states_in  # noqa: E402
+import tasks.positional_joints as P
+import tasks.spring_adjoint as sa
+from bench.runner import cpu_model
+from loop_ops import loops, ops_per_call
+from methods.ild.benchmark import vjp_of_ones
+from tasks import make_task
+from timing import print_forward_and_vjp, states_in
 
 
 def pieces(sys_, rows) -> dict:
@@ -55,13 +54,11 @@ def op_counts(parts: dict, ps, act) -> dict:
     """{name: (forward operations, VJP operations)} of each piece vmapped and jitted alone,
     counted as `loop_ops.loops` counts (the VJP: forward and backward, cotangent of
     ones)."""
-    from loop_ops import loops
-    from methods.ild.benchmark import vjp_of_ones
     out = {}
     for name, f in parts.items():
         vf = jax.vmap(f)
-        out[name] = tuple(sum(r["body_ops"] * r["passes"] for r in loops(
-            jax.jit(g).lower(ps, act).compile().as_text())) for g in (vf, vjp_of_ones(vf)))
+        out[name] = tuple(ops_per_call(loops(jax.jit(g).lower(ps, act).compile().as_text()))
+                          for g in (vf, vjp_of_ones(vf)))
     return out
 
 
