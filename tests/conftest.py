@@ -10,6 +10,27 @@ import pytest
 warnings.filterwarnings("ignore", message="Brax System, piplines")
 
 
+def pytest_configure(config):
+    """Pin each pytest-xdist worker to a CPU of its own.
+
+    Without this, both workers see every CPU: torch starts one intra-op thread per usable
+    CPU (bench.runner.set_torch_threads) and XLA one compile/run thread per CPU, so a torch
+    test on one worker stalls behind the other worker's XLA compile. Measured in session 65
+    on the 2-core Xeon: DAC's and PWIL's pointmass conformance tests took 169 s and 177 s
+    beside test_hand_adjoint, 7 s and 5 s alone; test_conformance + test_hand_adjoint +
+    test_sb3 took 351 s unpinned and 179 s pinned. With one CPU each, every library sizes
+    its pools to 1 and the workers stop competing. Only when there are at least as many
+    CPUs as workers; a single process (no -n) keeps every CPU.
+    """
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if not worker.startswith("gw") or not hasattr(os, "sched_setaffinity"):
+        return
+    cpus = sorted(os.sched_getaffinity(0))
+    if 1 < count <= len(cpus):
+        os.sched_setaffinity(0, {cpus[int(worker[2:]) % len(cpus)]})
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _jax_cache(tmp_path_factory):
     # A per-session persistent compilation cache: repeated shapes within the run compile once.
