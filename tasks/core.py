@@ -417,19 +417,75 @@ def with_closed_form_adjoint(task: Task) -> Task:
                    *(jax.ShapeDtypeStruct((n,), jnp.float32) for n in
                      (inner.sys.q_size(), inner.sys.qd_size(), inner.sys.act_size())))
 
-    @jax.custom_vjp
-    def step(q, qd, action, rest):
-        return brax_step(rest.replace(q=q, qd=qd), action)
+    inner.pipeline_step = _step_with_adjoint(
+        brax_step, ("q", "qd"), inner.closed_form_step,
+        lambda ct: (ct.q, ct.qd, ct.x.pos, ct.x.rot, ct.xd.vel, ct.xd.ang))
+    return _like(task, Task(spec=task.spec, env=env))
 
-    def fwd(q, qd, action, rest):
-        return step(q, qd, action, rest), (q, qd, action)
+
+def _step_with_adjoint(forward, fields: tuple[str, str], closed_form, read_cotangent):
+    """pipeline_step(state, action) with `forward`'s values and, in reverse mode, the VJP of
+    `closed_form(state.<fields[0]>, state.<fields[1]>, action)` for the output's cotangent
+    as `read_cotangent` reads it off the output state's; the state's other fields carry
+    none. The forward stores only those two fields and the action."""
+    a, b = fields
+
+    @jax.custom_vjp
+    def step(x, y, action, rest):
+        return forward(rest.replace(**{a: x, b: y}), action)
+
+    def fwd(x, y, action, rest):
+        return step(x, y, action, rest), (x, y, action)
 
     def bwd(res, ct):
-        _, vjp = jax.vjp(inner.closed_form_step, *res)
-        return (*vjp((ct.q, ct.qd, ct.x.pos, ct.x.rot, ct.xd.vel, ct.xd.ang)), None)
+        _, vjp = jax.vjp(closed_form, *res)
+        return (*vjp(read_cotangent(ct)), None)
 
     step.defvjp(fwd, bwd)
-    inner.pipeline_step = lambda ps, action: step(ps.q, ps.qd, action, ps)
+    return lambda ps, action: step(getattr(ps, a), getattr(ps, b), action, ps)
+
+
+def planar_adjoint_refusal(task: Task) -> str | None:
+    """Why `with_planar_adjoint` cannot differentiate `task` (None where it can): it is for
+    brax's positional step of a scene that moves in the x-z plane
+    (`tasks.planar.planar_refusal`)."""
+    backend = getattr(task.spec, "backend", None)
+    if backend != "positional" or not has_substep_loop(task):
+        return (f"task {task.name!r} runs {backend!r} physics; planar_adjoint differentiates "
+                "brax's positional step of a planar scene (inverted_pendulum): leave it False")
+    from tasks.planar import planar_refusal
+    why = planar_refusal(task.env.unwrapped.sys)
+    if why is not None:
+        return (f"task {task.name!r}: {why}; planar_adjoint models a scene that moves in the "
+                "x-z plane: leave it False")
+    return None
+
+
+def with_planar_adjoint(task: Task) -> Task:
+    """A fresh copy of brax positional task `task` whose control step runs `task`'s own
+    (brax's, or a `with_lean_substeps` / `with_positional_joints` copy's: the same values)
+    and, in reverse mode, the VJP of `tasks.planar.control_step` instead: brax's positional
+    step written over the plane the scene moves in, its derivative the same to float32
+    round-off (tests/test_planar.py). The step is taken as a function of the state's
+    centre-of-mass frames (`x_i`, `xd_i`) and the action, as the planar form is: the state's
+    other frames and joint coordinates are functions of those on every state a rollout
+    visits (brax's substeps end, and its resets begin, by computing them from those
+    frames), so the output's cotangents in all of them go back to the input's `x_i`, `xd_i`
+    and the action, and the input's other fields carry none. Each step's backward
+    recomputes the planar step from its input (what the forward stores), as
+    `with_substep_remat` recomputes brax's substeps. Errors for a task it does not fit
+    (`planar_adjoint_refusal`)."""
+    why = planar_adjoint_refusal(task)
+    if why is not None:
+        raise ValueError(why)
+    from tasks.planar import control_step, cotangent, planar_scene
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
+    inner.sys = given.sys
+    scene, n_frames = planar_scene(given.sys), inner._n_frames
+    inner.pipeline_step = _step_with_adjoint(  # the task's own step: brax's or a rebuilt one
+        given.pipeline_step, ("x_i", "xd_i"),
+        lambda *a: control_step(scene, *a, n_frames), cotangent)
     return _like(task, Task(spec=task.spec, env=env))
 
 

@@ -8,6 +8,9 @@ LOSSES = ("chamfer", "l2")
 DISTANCES = ("rms", "sq")
 SCHEDULES = ("linear", "constant", "budget")
 NORM_SCOPES = ("env", "batch")
+PLANAR_ADJOINT_EXCLUDES = ("small_dots", "hand_adjoint", "closed_form_adjoint")
+"""ILDConfig fields that rewrite physics `planar_adjoint` does not run: the spring substep
+(`hand_adjoint`), a closed-form step's backward, or brax's step as small products."""
 
 
 HAND_ADJOINT_PIECES = ("hinge_forces", "planar_root", "rotary_joints")
@@ -240,6 +243,16 @@ class ILDConfig:
     TASK_OVERRIDES of the tasks in `POSITIONAL_JOINTS_TASKS` turn it on (their 3- and
     10-minute ILD cells re-run with it). Tasks on other backends, or with other joints,
     refuse it."""
+    planar_adjoint: bool = False
+    """On brax's positional backend, for a scene that moves in the x-z plane
+    (inverted_pendulum): the training rollouts' control step runs the task's own physics
+    (with `lean_substeps` and `positional_joints` as set; `substep_remat` has nothing left
+    to act on) and, in reverse mode, the VJP of `tasks.planar.control_step`, brax's
+    positional step written over the plane (`tasks.core.with_planar_adjoint`), in place of
+    XLA's reverse mode of every out-of-plane entry brax computes. The same rollout, and the
+    same gradient to float32 round-off where the per-step normalization clips nothing
+    (tests/test_planar.py). Tasks whose scene leaves the plane (reacher: a two-dof joint,
+    and gravity along its hinges) or other backends refuse it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -276,6 +289,10 @@ class ILDConfig:
             (not (self.positional_joints and (self.hand_adjoint or self.closed_form_adjoint)),
              "positional_joints rewrites brax's positional substep, hand_adjoint the spring "
              "one and closed_form_adjoint the whole step; set positional_joints False"),
+            *((not (self.planar_adjoint and getattr(self, other)),
+               f"planar_adjoint differentiates brax's positional step through its planar "
+               f"form; {other} rewrites another: set one of them False")
+              for other in PLANAR_ADJOINT_EXCLUDES),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
@@ -414,3 +431,13 @@ _merge_overrides(ROTARY_JOINTS_TASKS, rotary_joints=True)
 # 5.93x. Session 63 re-ran these tasks' 3- and 10-minute ILD cells with it.
 POSITIONAL_JOINTS_TASKS = ("reacher", "inverted_pendulum")
 _merge_overrides(POSITIONAL_JOINTS_TASKS, positional_joints=True)
+
+# The positional step's backward through its planar form (session 66) on the positional task
+# whose scene moves in the x-z plane: the same rollout, its gradient the same to float32
+# round-off where the per-step normalization clips nothing (tests/test_planar.py); one core,
+# B = 32, paired against the same update with positional_joints' backward
+# (results/planar/paired_session66_*.csv): 1.33x faster with the huge-page tunable, 1.40x
+# without; a 3-minute cell (seed 0) made 936 updates instead of 753. Session 66 re-ran its
+# 3- and 10-minute ILD cells with it.
+PLANAR_ADJOINT_TASKS = ("inverted_pendulum",)
+_merge_overrides(PLANAR_ADJOINT_TASKS, planar_adjoint=True)

@@ -21,8 +21,8 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 from tasks.core import (has_substep_loop, with_closed_form_adjoint, with_hand_adjoint,
-                        with_lean_substeps, with_positional_joints, with_small_dots,
-                        with_substep_remat, without_joint_limits)
+                        with_lean_substeps, with_planar_adjoint, with_positional_joints,
+                        with_small_dots, with_substep_remat, without_joint_limits)
 
 
 @flax.struct.dataclass
@@ -306,11 +306,18 @@ def rollout_physics(task, config: ILDConfig):
     with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`) or brax's
     positional substep for hinges and slides (`positional_joints`), and/or
     with small matrix products as multiply-and-sum, or differentiated through its
-    closed-form step (`closed_form_adjoint`), as configured."""
+    closed-form step (`closed_form_adjoint`) or its planar form (`planar_adjoint`), as
+    configured."""
     if not config.joint_limits:
         task = without_joint_limits(task)
     if config.closed_form_adjoint:  # its backward never reads brax's substeps
         return with_closed_form_adjoint(task)
+    if config.planar_adjoint:  # its backward never reads brax's substeps: no checkpoints
+        if config.positional_joints:
+            task = with_positional_joints(task, remat=False, lean=config.lean_substeps)
+        elif config.lean_substeps:
+            task = with_lean_substeps(task, remat=False)
+        return with_planar_adjoint(task)
     if config.hand_adjoint:
         task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps,
                                  hinges=config.hinge_forces, planar=config.planar_root,

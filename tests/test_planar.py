@@ -1,0 +1,256 @@
+"""`planar_adjoint`: brax's positional control step written over the plane a scene moves in
+(`tasks.planar`), differentiated in place of brax's reverse mode. The same values and
+derivative as brax's, step by step and through a rollout; clear refusals where a scene
+leaves the plane."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax import com, kinematics
+
+import tasks.planar as planar
+from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.config import ILDConfig
+from methods.ild.train import make_rollout_loss, rollout_physics
+from tasks import make_task
+from tasks.core import Task, planar_adjoint_refusal, with_planar_adjoint
+from tests.test_hand_adjoint import _states
+
+
+def test_planar_algebra_folds_the_static_zero_and_keeps_braxs_expressions():
+    """Products with the static 0.0 are 0.0 and sums with it the other term (decided
+    without tracing), products with 1.0 the other factor; on arrays the tuple forms compute
+    brax.math's rotate, quat_mul and vec_quat_mul, and `safe_normalize` brax's normalize
+    (its safe_norm's zero branch included: an all-tiny vector has norm 0 and gradient 0)."""
+    x = jnp.float32(2.5)
+    assert planar.mul(0.0, x) == 0.0 and isinstance(planar.mul(x, 0.0), float)
+    assert planar.add(0.0, x) is x and planar.sub(x, 0.0) is x and planar.mul(1.0, x) is x
+    assert planar.cross((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)) == (0.0, -1.0, 0.0)
+    from brax import math
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    v, q, u = (jax.random.normal(kk, (n,)) for kk, n in zip(k, (3, 4, 3)))
+    np.testing.assert_allclose(jnp.stack(planar.rotate(tuple(v), tuple(q))),
+                               math.rotate(v, q), rtol=1e-6)
+    np.testing.assert_allclose(jnp.stack(planar.quat_mul(tuple(q), tuple(q[::-1]))),
+                               math.quat_mul(q, q[::-1]), rtol=1e-6)
+    np.testing.assert_allclose(jnp.stack(planar.vec_quat_mul(tuple(u), tuple(q))),
+                               math.vec_quat_mul(u, q), rtol=1e-6)
+    for w in (v, jnp.array([3e-9, 0.0, -5e-9])):
+        n, norm = planar.safe_normalize(tuple(w))
+        want_n, want_norm = math.normalize(w)
+        np.testing.assert_allclose(jnp.stack(n), want_n, rtol=1e-6)
+        np.testing.assert_allclose(norm, want_norm, rtol=1e-6)
+    g = jax.grad(lambda w: planar.safe_normalize((w[0], 0.0, w[1]))[1])(
+        jnp.array([3e-9, -5e-9]))
+    np.testing.assert_array_equal(g, [0.0, 0.0])
+
+
+def test_planar_scene_reads_inverted_pendulum():
+    """inverted_pendulum's cart slides along x under the world, its pole hinges about y on
+    the cart; gravity -9.81 along z, 0.005-s substeps, one motor of gear 100 on the slide;
+    every link's inertia is the identity (spring_inertia_scale 1)."""
+    sc = planar.planar_scene(make_task("inverted_pendulum").env.unwrapped.sys)
+    cart, pole = sc.links
+    assert (cart.parent, pole.parent) == (-1, 0)
+    assert (cart.hinge, pole.hinge) == (False, True)
+    assert cart.motion == (1.0, 0.0, 0.0) and pole.motion == (0.0, 1.0, 0.0)
+    assert sc.gravity == (0.0, 0.0, planar._f32(-9.81)) and sc.dt == planar._f32(0.005)
+    assert sc.actuators == ((0, 100.0, 1.0, -3.0, 3.0, -np.inf, np.inf),)
+    assert cart.inertia_inv == pole.inertia_inv == (1.0, 1.0, 1.0)
+    assert planar.planar_refusal(make_task("inverted_pendulum").env.unwrapped.sys) is None
+
+
+def _consistent(sys, ps, x_i, xd_i):
+    """`ps` with every frame and joint coordinate computed from `x_i`, `xd_i`, as brax's
+    substep ends (the function of the centre-of-mass frames the closed form is)."""
+    x, xd = com.to_world(sys, x_i, xd_i)
+    j, jd, a_p, a_c = kinematics.world_to_joint(sys, x, xd)
+    q, qd = kinematics.inverse(sys, j, jd)
+    return ps.replace(x=x, xd=xd, x_i=x_i, xd_i=xd_i, j=j, jd=jd, a_p=a_p, a_c=a_c, q=q,
+                      qd=qd)
+
+
+def _control_steps(x_i=None):
+    """(brax's, ours): one control step (4 substeps) of 8 inverted_pendulum envs 10 steps
+    after reset, as functions of (x_i, xd_i, action) returning `control_step`'s outputs
+    (brax's positional step with the state's other fields computed from x_i, xd_i), and
+    their arguments there (`x_i`: those frames replaced)."""
+    task, ps, act = _states("inverted_pendulum")
+    env = task.env.unwrapped
+    sys, sc, n = env.sys, planar.planar_scene(env.sys), env._n_frames
+    ours = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
+
+    def brax_fn(xi, xdi, a):
+        step = lambda p_, xi_, xdi_, a_: env.pipeline_step(  # noqa: E731
+            _consistent(sys, p_, xi_, xdi_), a_)
+        return planar.cotangent(jax.vmap(step)(ps, xi, xdi, a))
+
+    return brax_fn, ours, (ps.x_i if x_i is None else x_i(ps.x_i), ps.xd_i, act)
+
+
+def test_control_step_is_braxs_step():
+    """Every frame and joint coordinate brax's positional step computes, to float32
+    round-off: positions within 1e-7 and velocities, which divide a position change by the
+    0.005-s substep, within 2e-5 (measured: 1.5e-8 and 3.3e-6). Out-of-plane entries are
+    exactly zero here (brax's are round-off)."""
+    brax_fn, ours, args = _control_steps()
+    want, got = jax.jit(brax_fn)(*args), jax.jit(ours)(*args)
+    for name, w, g in zip(planar.OUTPUTS, want[0], got[0]):
+        tol = 2e-5 if name in ("xd", "xd_i", "jd") else 1e-7
+        for wk, gk in zip(w, g):
+            np.testing.assert_allclose(gk, wk, rtol=0, atol=tol, err_msg=name)
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=2e-5)
+    assert float(jnp.abs(got[0][0][0][..., 1]).max()) == 0.0  # x.pos's y: exactly zero
+    assert float(jnp.abs(got[2]).max()) > 0.1  # the envs move
+
+
+def _in_plane(kind, v):
+    mask = np.zeros(v.shape[-1], np.float32)
+    mask[list(planar.LIVE[kind])] = 1.0
+    return v * mask
+
+
+@pytest.mark.slow  # brax's control-step VJP, op by op: ~1.5 minutes on one core
+def test_control_step_vjp_is_braxs():
+    """The VJP in the centre-of-mass frames and the action, for a sine cotangent of the
+    in-plane entries of every output, against XLA's reverse mode of brax's step as a
+    function of those frames, within 1e-4 of each leaf's largest entry, at the links turned
+    about y by a few milliradians each: the cart's rotation off its slide is ~1e-9 in the
+    rollout, where brax's safe_norm (zero when every entry is within 1e-8 of zero) makes
+    the rotation correction's derivative 0 or of order 1 by round-off (one of 8 envs
+    differed there, by 60% of the cart's rotation cotangent)."""
+    half = 0.5 * jnp.array([2e-3, -1.5e-3])
+    turn = jnp.stack([jnp.cos(half), 0 * half, jnp.sin(half), 0 * half], -1)
+    from brax import math
+    brax_fn, ours, args = _control_steps(lambda x_i: x_i.replace(
+        rot=jax.vmap(jax.vmap(math.quat_mul), (None, 0))(turn, x_i.rot)))
+    _, want_pull = jax.vjp(brax_fn, *args)
+    got, got_pull = jax.vjp(ours, *args)
+    leaves = jax.tree.map(lambda v: jnp.sin(7.0 * jnp.arange(v.size, dtype=v.dtype)
+                                            ).reshape(v.shape), got)
+    ct = (tuple((_in_plane(k0, a), _in_plane(k1, b)) for name, (a, b) in zip(
+        planar.OUTPUTS, leaves[0]) for k0, k1 in [
+        ("vel", "ang") if name in ("xd", "xd_i", "jd") else ("pos", "rot")]),
+        leaves[1], leaves[2])
+    w_xi, w_xdi, w_a = want_pull(ct)
+    g_xi, g_xdi, g_a = got_pull(ct)
+    for kind, w, g in (("pos", w_xi.pos, g_xi.pos), ("rot", w_xi.rot, g_xi.rot),
+                       ("vel", w_xdi.vel, g_xdi.vel), ("ang", w_xdi.ang, g_xdi.ang),
+                       ("act", w_a, g_a)):
+        w = w if kind == "act" else _in_plane(kind, w)
+        scale = float(jnp.abs(w).max())
+        assert scale > 1e-2, kind
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-4 * scale, err_msg=kind)
+
+
+def _rollout_gradients(steps: int, a: dict, b: dict):
+    """ILD's rollout loss and policy gradient on inverted_pendulum, B = 8 over a `steps`-step
+    episode, with the config it trains with (its TASK_OVERRIDES: truncation 128,
+    positional_joints, lean substeps, planar_adjoint) updated by `a` and by `b`."""
+    task = make_task("inverted_pendulum")
+    task = Task(spec=dataclasses.replace(task.spec, episode_length=steps), env=task.env)
+    out = []
+    assert task_config("inverted_pendulum", 8, a) != task_config("inverted_pendulum", 8, b)
+    for over in (a, b):
+        cfg = task_config("inverted_pendulum", 8, over)
+        policy, goals, norm, params, k = speed_setup(task, cfg)
+        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        init_keys = jax.random.split(k[2], 8)
+        out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
+    return out
+
+
+def _same_gradient(want, got, atol: float):
+    flat = jax.tree_util.tree_flatten_with_path(want)[0]
+    for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(g, w, rtol=0, atol=atol * float(jnp.abs(w).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
+
+
+def test_planar_adjoint_is_the_same_rollout_and_gradient():
+    """Over 16 steps: the same loss bit for bit (the task's own step computes the rollout)
+    and every gradient leaf within 1e-5 of its largest entry (measured: 2.4e-6)."""
+    (want_l, want), (got_l, got) = _rollout_gradients(16, {"planar_adjoint": False},
+                                                      {"planar_adjoint": True})
+    assert float(got_l) == float(want_l)
+    _same_gradient(want, got, 1e-5)
+
+
+@pytest.mark.slow  # two 128-step rollout-gradient compiles: ~1.5 minutes on one core
+def test_planar_adjoint_is_the_same_full_bptt_gradient_where_nothing_clips():
+    """Over the whole 128-step episode (inverted_pendulum trains with full BPTT), without
+    the per-step gradient normalization: every leaf within 5e-4 of its largest entry
+    (measured: 9.4e-5). With it the two differ (1.1e-2 measured): each step's cotangent
+    norm is taken over the state's fields, which brax's reverse mode (and
+    positional_joints' at 3x the difference, 5.5e-1) spreads over every frame and this
+    one puts on the centre-of-mass frames, so a norm above 1 is clipped differently."""
+    off = {"grad_normalization": False}
+    (want_l, want), (got_l, got) = _rollout_gradients(
+        128, {**off, "planar_adjoint": False}, {**off, "planar_adjoint": True})
+    assert float(got_l) == float(want_l)
+    _same_gradient(want, got, 5e-4)
+
+
+def test_planar_adjoint_refuses_what_it_does_not_model():
+    """Another backend (hopper: spring; acrobot: generalized; pointmass), a positional
+    scene with a two-dof joint (reacher's target), gravity out of the plane or a motor
+    that pushes the cart along y (inverted_pendulum's constants changed): a ValueError naming the task,
+    the reason and the field; with closed_form_adjoint, hand_adjoint or small_dots the
+    config refuses the pair; beside lean_substeps and positional_joints (the forward it
+    runs) it builds."""
+    for name in ("hopper", "acrobot", "pointmass"):
+        with pytest.raises(ValueError, match=f"{name}.*planar_adjoint.*leave it False"):
+            with_planar_adjoint(make_task(name))
+    with pytest.raises(ValueError, match="'reacher': it has a joint with more than one dof"):
+        with_planar_adjoint(make_task("reacher"))
+    task = make_task("inverted_pendulum")
+    assert planar_adjoint_refusal(task) is None
+    sys = task.env.unwrapped.sys
+    assert planar.planar_scene(sys.replace(gravity=jnp.array([0.0, -9.81, 0.0]))) == (
+        "its gravity is not in the x-z plane")
+    motion = sys.dof.motion.replace(vel=sys.dof.motion.vel.at[0].set(jnp.array([0.0, 1, 0])))
+    why = planar.planar_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
+    assert why.startswith("a substep moves it out of the x-z plane (link 0's"), why
+    for other in ("closed_form_adjoint", "hand_adjoint", "small_dots"):
+        with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
+            ILDConfig(planar_adjoint=True, **{other: True})
+    ILDConfig(planar_adjoint=True, lean_substeps=True, positional_joints=True)
+
+
+@pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
+def test_step_cost_script_times_four_rows():
+    """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): four rows,
+    each a positive time."""
+    import importlib.util
+    import pathlib
+    path = pathlib.Path(__file__).resolve().parents[1] / "results/planar/scripts/step_cost.py"
+    spec = importlib.util.spec_from_file_location("step_cost", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    med = mod.main(["--batch", "4", "--calls", "2", "--rounds", "1"])
+    assert set(med) == {"brax_forward", "planar_forward", "brax_vjp", "planar_vjp"}
+    assert all(v > 0 for v in med.values())
+
+
+def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
+    """Since session 66 ILD trains with `planar_adjoint` on every task whose scene the planar
+    form models and on no other: TASK_OVERRIDES turns it on exactly where
+    `planar_adjoint_refusal` has no objection (inverted_pendulum), merged with that task's
+    other overrides; `--set planar_adjoint=false` turns it off alone."""
+    from bench.plugins import build_config, get_method
+    from methods.ild.config import PLANAR_ADJOINT_TASKS, TASK_OVERRIDES
+    from tasks.registry import TASKS
+    on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_adjoint")}
+    allowed = {name for name in TASKS if planar_adjoint_refusal(make_task(name)) is None}
+    assert set(PLANAR_ADJOINT_TASKS) == on == allowed == {"inverted_pendulum"}
+    ild = get_method("ild")
+    ip = build_config(ild, "inverted_pendulum", "cpu", {})
+    assert ip.planar_adjoint and ip.positional_joints and ip.lean_substeps
+    assert ip.truncation == 128
+    off = build_config(ild, "inverted_pendulum", "cpu", {"planar_adjoint": "false"})
+    assert off == dataclasses.replace(ip, planar_adjoint=False)
+    assert not build_config(ild, "reacher", "cpu", {}).planar_adjoint
