@@ -19,9 +19,9 @@ and an angular velocity (y). The out-of-plane entries brax computes are round-of
 about 1e-8 of zero on inverted_pendulum, results/JOURNAL.md, session 64); here they are
 zero. The in-plane values are brax's to float32 round-off (tests/test_planar.py: positions
 within 1.5e-8, velocities within 3.3e-6 over a control step). At B = 32 one control step
-costs 0.07-0.10 ms forward against brax's 0.52-0.60 ms, and 0.64 ms as a VJP against
-brax's 2.9-3.6 ms (`python results/planar/scripts/step_cost.py`, session 66): the VJP of a
-program of scalars is many small XLA loops, about 9x its forward.
+costs 0.115 ms forward against brax's 0.600 ms, and 0.92 ms as its value and VJP against
+brax's 4.54 ms, each about 8x its own forward (`python results/planar/scripts/step_cost.py`,
+session 66: results/planar/step_cost_session66.txt).
 
 `control_step` is one control step (`n_frames` substeps, the joint coordinates only at the
 end, as `lean_substeps` computes them) as a function of the state's centre-of-mass frames
@@ -163,10 +163,14 @@ def plain_normalize(v):
     return tuple(div(a, scale) for a in v)
 
 
+def _f32(x) -> float:
+    return float(np.float32(x))
+
+
 def _const(x) -> tuple:
     """A constant vector or quaternion of the scene as Python floats (float32 values, so a
     product with a float32 array is the same product as brax's)."""
-    return tuple(float(np.float32(a)) for a in np.asarray(x).ravel())
+    return tuple(_f32(a) for a in np.asarray(x).ravel())
 
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
@@ -176,10 +180,6 @@ ORIGIN = (0.0, 0.0, 0.0)
 # ----------------------------------------------------------------------------------------
 # The scene's constants.
 # ----------------------------------------------------------------------------------------
-
-
-def _f32(x) -> float:
-    return float(np.float32(x))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -222,16 +222,11 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
 
 
 @pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
-def test_step_cost_script_times_four_rows():
+def test_step_cost_script_times_four_rows(results_script):
     """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): four rows,
     each a positive time."""
-    import importlib.util
-    import pathlib
-    path = pathlib.Path(__file__).resolve().parents[1] / "results/planar/scripts/step_cost.py"
-    spec = importlib.util.spec_from_file_location("step_cost", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    med = mod.main(["--batch", "4", "--calls", "2", "--rounds", "1"])
+    with results_script("planar", "step_cost") as mod:
+        med = mod.main(["--batch", "4", "--calls", "2", "--rounds", "1"])
     assert set(med) == {"brax_forward", "planar_forward", "brax_vjp", "planar_vjp"}
     assert all(v > 0 for v in med.values())
 

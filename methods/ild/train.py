@@ -312,25 +312,22 @@ def rollout_physics(task, config: ILDConfig):
         task = without_joint_limits(task)
     if config.closed_form_adjoint:  # its backward never reads brax's substeps
         return with_closed_form_adjoint(task)
-    if config.planar_adjoint:  # its backward never reads brax's substeps: no checkpoints
-        if config.positional_joints:
-            task = with_positional_joints(task, remat=False, lean=config.lean_substeps)
-        elif config.lean_substeps:
-            task = with_lean_substeps(task, remat=False)
-        return with_planar_adjoint(task)
+    # planar_adjoint's backward never reads brax's substeps: nothing to checkpoint
+    remat = config.substep_remat and not config.planar_adjoint
     if config.hand_adjoint:
-        task = with_hand_adjoint(task, remat=config.substep_remat, lean=config.lean_substeps,
+        task = with_hand_adjoint(task, remat=remat, lean=config.lean_substeps,
                                  hinges=config.hinge_forces, planar=config.planar_root,
                                  rotary=config.rotary_joints)
     elif config.positional_joints:
-        task = with_positional_joints(task, remat=config.substep_remat,
-                                      lean=config.lean_substeps)
+        task = with_positional_joints(task, remat=remat, lean=config.lean_substeps)
     elif config.lean_substeps:
-        task = with_lean_substeps(task, remat=config.substep_remat)
-    elif config.substep_remat and has_substep_loop(task):
+        task = with_lean_substeps(task, remat=remat)
+    elif remat and has_substep_loop(task):
         task = with_substep_remat(task)
     if config.small_dots:
         task = with_small_dots(task)
+    if config.planar_adjoint:  # the forward built above, differentiated through the plane
+        task = with_planar_adjoint(task)
     return task
 
 
