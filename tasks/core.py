@@ -448,13 +448,18 @@ def _step_with_adjoint(forward, fields: tuple[str, str], closed_form, read_cotan
 def planar_adjoint_refusal(task: Task) -> str | None:
     """Why `with_planar_adjoint` cannot differentiate `task` (None where it can): it is for
     brax's positional step of a scene that moves in the x-z plane
-    (`tasks.planar.planar_refusal`)."""
+    (`tasks.planar.planar_refusal`) and brax's spring step of one
+    (`tasks.planar_spring.spring_refusal`)."""
     backend = getattr(task.spec, "backend", None)
-    if backend != "positional" or not has_substep_loop(task):
+    if backend not in ("positional", "spring") or not has_substep_loop(task):
         return (f"task {task.name!r} runs {backend!r} physics; planar_adjoint differentiates "
-                "brax's positional step of a planar scene (inverted_pendulum): leave it False")
-    from tasks.planar import planar_refusal
-    why = planar_refusal(task.env.unwrapped.sys)
+                "brax's positional or spring step of a planar scene (inverted_pendulum, "
+                "hopper, walker2d): leave it False")
+    if backend == "positional":
+        from tasks.planar import planar_refusal as refusal
+    else:
+        from tasks.planar_spring import spring_refusal as refusal
+    why = refusal(task.env.unwrapped.sys)
     if why is not None:
         return (f"task {task.name!r}: {why}; planar_adjoint models a scene that moves in the "
                 "x-z plane: leave it False")
@@ -462,18 +467,19 @@ def planar_adjoint_refusal(task: Task) -> str | None:
 
 
 def with_planar_adjoint(task: Task) -> Task:
-    """A fresh copy of brax positional task `task` whose control step runs `task`'s own
-    (brax's, or a `with_lean_substeps` / `with_positional_joints` copy's: the same values)
-    and, in reverse mode, the VJP of `tasks.planar.control_step` instead: brax's positional
-    step written over the plane the scene moves in, its derivative the same to float32
-    round-off (tests/test_planar.py). The step is taken as a function of the state's
-    centre-of-mass frames (`x_i`, `xd_i`) and the action, as the planar form is: the state's
-    other frames and joint coordinates are functions of those on every state a rollout
-    visits (brax's substeps end, and its resets begin, by computing them from those
-    frames), so the output's cotangents in all of them go back to the input's `x_i`, `xd_i`
-    and the action, and the input's other fields carry none. Each step's backward
-    recomputes the planar step from its input (what the forward stores), as
-    `with_substep_remat` recomputes brax's substeps. Errors for a task it does not fit
+    """A fresh copy of brax positional or spring task `task` whose control step runs
+    `task`'s own (brax's, or a `with_lean_substeps` / `with_positional_joints` /
+    `with_hand_adjoint` copy's: the same values) and, in reverse mode, the VJP of
+    `tasks.planar.control_step` (positional) or `tasks.planar_spring.control_step` (spring)
+    instead: brax's step written over the plane the scene moves in, its derivative the same
+    to float32 round-off (tests/test_planar.py, tests/test_planar_spring.py). The step is
+    taken as a function of the state's centre-of-mass frames (`x_i`, `xd_i`) and the
+    action, as the planar form is: the state's other frames and joint coordinates are
+    functions of those on every state a rollout visits (brax's substeps end, and its
+    resets begin, by computing them from those frames), so the output's cotangents in all
+    of them go back to the input's `x_i`, `xd_i` and the action, and the input's other
+    fields carry none. Each step's backward recomputes the planar step from its input (what
+    the forward stores), as `with_substep_remat` recomputes brax's substeps. Errors for a task it does not fit
     (`planar_adjoint_refusal`)."""
     why = planar_adjoint_refusal(task)
     if why is not None:
@@ -481,11 +487,16 @@ def with_planar_adjoint(task: Task) -> Task:
     from tasks.planar import control_step, cotangent, planar_scene
     env = build_env(task.spec)
     inner, given = env.unwrapped, task.env.unwrapped
-    inner.sys = given.sys
-    scene, n_frames = planar_scene(given.sys), inner._n_frames
+    inner.sys, n_frames = given.sys, inner._n_frames
+    if task.spec.backend == "positional":
+        scene = planar_scene(given.sys)
+        closed_form = lambda *a: control_step(scene, *a, n_frames)  # noqa: E731
+    else:
+        from tasks.planar_spring import control_step as spring_step, spring_scene
+        scene = spring_scene(given.sys)
+        closed_form = lambda *a: spring_step(scene, given.sys, *a, n_frames)  # noqa: E731
     inner.pipeline_step = _step_with_adjoint(  # the task's own step: brax's or a rebuilt one
-        given.pipeline_step, ("x_i", "xd_i"),
-        lambda *a: control_step(scene, *a, n_frames), cotangent)
+        given.pipeline_step, ("x_i", "xd_i"), closed_form, cotangent)
     return _like(task, Task(spec=task.spec, env=env))
 
 

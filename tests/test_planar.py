@@ -127,8 +127,15 @@ def test_control_step_vjp_is_braxs():
     from brax import math
     brax_fn, ours, args = _control_steps(lambda x_i: x_i.replace(
         rot=jax.vmap(jax.vmap(math.quat_mul), (None, 0))(turn, x_i.rot)))
-    _, want_pull = jax.vjp(brax_fn, *args)
-    got, got_pull = jax.vjp(ours, *args)
+    assert_same_vjp(brax_fn, ours, args)
+
+
+def assert_same_vjp(want_fn, got_fn, args):
+    """`got_fn`'s VJP in (x_i, xd_i, action) equals `want_fn`'s within 1e-4 of each leaf's
+    largest entry (in-plane entries), for a sine cotangent of the in-plane entries of every
+    output of `got_fn` (a `control_step`)."""
+    _, want_pull = jax.vjp(want_fn, *args)
+    got, got_pull = jax.vjp(got_fn, *args)
     leaves = jax.tree.map(lambda v: jnp.sin(7.0 * jnp.arange(v.size, dtype=v.dtype)
                                             ).reshape(v.shape), got)
     ct = (tuple((_in_plane(k0, a), _in_plane(k1, b)) for name, (a, b) in zip(
@@ -196,13 +203,13 @@ def test_planar_adjoint_is_the_same_full_bptt_gradient_where_nothing_clips():
 
 
 def test_planar_adjoint_refuses_what_it_does_not_model():
-    """Another backend (hopper: spring; acrobot: generalized; pointmass), a positional
-    scene with a two-dof joint (reacher's target), gravity out of the plane or a motor
-    that pushes the cart along y (inverted_pendulum's constants changed): a ValueError naming the task,
-    the reason and the field; with closed_form_adjoint, hand_adjoint or small_dots the
-    config refuses the pair; beside lean_substeps and positional_joints (the forward it
-    runs) it builds."""
-    for name in ("hopper", "acrobot", "pointmass"):
+    """Another backend (acrobot: generalized; pointmass; the spring scenes:
+    tests/test_planar_spring.py), a positional scene with a two-dof joint (reacher's
+    target), gravity out of the plane or a motor that pushes the cart along y
+    (inverted_pendulum's constants changed): a ValueError naming the task, the reason and
+    the field; with closed_form_adjoint or small_dots the config refuses the pair; beside
+    lean_substeps and positional_joints (the forward it runs) it builds."""
+    for name in ("acrobot", "pointmass"):
         with pytest.raises(ValueError, match=f"{name}.*planar_adjoint.*leave it False"):
             with_planar_adjoint(make_task(name))
     with pytest.raises(ValueError, match="'reacher': it has a joint with more than one dof"):
@@ -215,7 +222,7 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
     motion = sys.dof.motion.replace(vel=sys.dof.motion.vel.at[0].set(jnp.array([0.0, 1, 0])))
     why = planar.planar_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
     assert why.startswith("a substep moves it out of the x-z plane (link 0's"), why
-    for other in ("closed_form_adjoint", "hand_adjoint", "small_dots"):
+    for other in ("closed_form_adjoint", "small_dots"):
         with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
             ILDConfig(planar_adjoint=True, **{other: True})
     ILDConfig(planar_adjoint=True, lean_substeps=True, positional_joints=True)
@@ -234,14 +241,16 @@ def test_step_cost_script_times_four_rows(results_script):
 def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
     """Since session 66 ILD trains with `planar_adjoint` on every task whose scene the planar
     form models and on no other: TASK_OVERRIDES turns it on exactly where
-    `planar_adjoint_refusal` has no objection (inverted_pendulum), merged with that task's
-    other overrides; `--set planar_adjoint=false` turns it off alone."""
+    `planar_adjoint_refusal` has no objection (inverted_pendulum; hopper and walker2d since
+    session 69), merged with that task's other overrides; `--set planar_adjoint=false`
+    turns it off alone."""
     from bench.plugins import build_config, get_method
     from methods.ild.config import PLANAR_ADJOINT_TASKS, TASK_OVERRIDES
     from tasks.registry import TASKS
     on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_adjoint")}
     allowed = {name for name in TASKS if planar_adjoint_refusal(make_task(name)) is None}
-    assert set(PLANAR_ADJOINT_TASKS) == on == allowed == {"inverted_pendulum"}
+    assert set(PLANAR_ADJOINT_TASKS) == on == allowed == {"inverted_pendulum", "hopper",
+                                                          "walker2d"}
     ild = get_method("ild")
     ip = build_config(ild, "inverted_pendulum", "cpu", {})
     assert ip.planar_adjoint and ip.positional_joints and ip.lean_substeps
@@ -249,3 +258,5 @@ def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
     off = build_config(ild, "inverted_pendulum", "cpu", {"planar_adjoint": "false"})
     assert off == dataclasses.replace(ip, planar_adjoint=False)
     assert not build_config(ild, "reacher", "cpu", {}).planar_adjoint
+    hopper = build_config(ild, "hopper", "cpu", {})
+    assert hopper.planar_adjoint and hopper.hand_adjoint and hopper.lean_substeps

@@ -8,9 +8,9 @@ LOSSES = ("chamfer", "l2")
 DISTANCES = ("rms", "sq")
 SCHEDULES = ("linear", "constant", "budget")
 NORM_SCOPES = ("env", "batch")
-PLANAR_ADJOINT_EXCLUDES = ("small_dots", "hand_adjoint", "closed_form_adjoint")
-"""ILDConfig fields that rewrite physics `planar_adjoint` does not run: the spring substep
-(`hand_adjoint`), a closed-form step's backward, or brax's step as small products."""
+PLANAR_ADJOINT_EXCLUDES = ("small_dots", "closed_form_adjoint")
+"""ILDConfig fields that rewrite physics `planar_adjoint` does not run: a closed-form step's
+backward, or brax's step as small products."""
 
 
 HAND_ADJOINT_PIECES = ("hinge_forces", "planar_root", "rotary_joints")
@@ -244,15 +244,17 @@ class ILDConfig:
     10-minute ILD cells re-run with it). Tasks on other backends, or with other joints,
     refuse it."""
     planar_adjoint: bool = False
-    """On brax's positional backend, for a scene that moves in the x-z plane
-    (inverted_pendulum): the training rollouts' control step runs the task's own physics
-    (with `lean_substeps` and `positional_joints` as set; `substep_remat` has nothing left
-    to act on) and, in reverse mode, the VJP of `tasks.planar.control_step`, brax's
-    positional step written over the plane (`tasks.core.with_planar_adjoint`), in place of
-    XLA's reverse mode of every out-of-plane entry brax computes. The same rollout, and the
+    """For a scene that moves in the x-z plane, on brax's positional backend
+    (inverted_pendulum) or its spring backend (hopper, walker2d): the training rollouts'
+    control step runs the task's own physics (with `lean_substeps`, `positional_joints`
+    and `hand_adjoint` as set; `substep_remat` has nothing left to act on) and, in reverse
+    mode, the VJP of brax's step written over the plane (`tasks.planar.control_step`,
+    `tasks.planar_spring.control_step`; `tasks.core.with_planar_adjoint`), in place of
+    reverse mode through every out-of-plane entry brax computes. The same rollout, and the
     same gradient to float32 round-off where the per-step normalization clips nothing
-    (tests/test_planar.py). Tasks whose scene leaves the plane (reacher: a two-dof joint,
-    and gravity along its hinges) or other backends refuse it."""
+    (tests/test_planar.py, tests/test_planar_spring.py). Tasks whose scene leaves the plane
+    (reacher: a two-dof joint, and gravity along its hinges; ant, humanoid) or other
+    backends refuse it. Off in the class; `PLANAR_ADJOINT_TASKS` turn it on."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -290,8 +292,8 @@ class ILDConfig:
              "positional_joints rewrites brax's positional substep, hand_adjoint the spring "
              "one and closed_form_adjoint the whole step; set positional_joints False"),
             *((not (self.planar_adjoint and getattr(self, other)),
-               f"planar_adjoint differentiates brax's positional step through its planar "
-               f"form; {other} rewrites another: set one of them False")
+               f"planar_adjoint differentiates brax's step through its planar form; {other} "
+               f"rewrites another: set one of them False")
               for other in PLANAR_ADJOINT_EXCLUDES),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
@@ -438,6 +440,11 @@ _merge_overrides(POSITIONAL_JOINTS_TASKS, positional_joints=True)
 # B = 32, paired against the same update with positional_joints' backward
 # (results/planar/paired_session66_*.csv): 1.33x faster with the huge-page tunable, 1.40x
 # without; a 3-minute cell (seed 0) made 936 updates instead of 753. Session 66 re-ran its
-# 3- and 10-minute ILD cells with it.
-PLANAR_ADJOINT_TASKS = ("inverted_pendulum",)
+# 3- and 10-minute ILD cells with it. Session 69 added the spring step's planar form
+# (`tasks.planar_spring`, written in session 67 and left out then as no faster) for hopper
+# and walker2d, whose forward stays hand_adjoint's: with the planar cotangents stacked rather
+# than padded (`tasks.planar._rows`), paired against the same update with hand_adjoint's
+# backward (results/planar_spring/paired_session69_*.csv), hopper's update 1.45x faster,
+# update / forward 3.25x -> 2.18x. Their 3- and 10-minute ILD cells were recorded before it.
+PLANAR_ADJOINT_TASKS = ("inverted_pendulum", "hopper", "walker2d")
 _merge_overrides(PLANAR_ADJOINT_TASKS, planar_adjoint=True)

@@ -1,5 +1,6 @@
-"""What one control step costs, forward and as a VJP, through brax's positional step and
-through its planar form (`tasks.planar.control_step`, session 66).
+"""What one control step costs, forward and as a VJP, through brax's step, through the step
+ILD trains with, and through its planar form (`tasks.planar.control_step` for a positional
+scene, session 66; `tasks.planar_spring.control_step` for a spring one, session 67).
 
     python results/planar/scripts/step_cost.py [--task inverted_pendulum] [--batch 32]
         [--calls 200] [--rounds 5]
@@ -7,10 +8,14 @@ through its planar form (`tasks.planar.control_step`, session 66).
 Times, jitted, B envs 10 steps after reset (the same state for every row), microseconds
 per call (the median over `--rounds` rounds of `--calls` calls, the rows interleaved round
 by round):
-- brax_forward: brax's `pipeline_step` as shipped (the forward rollout's step);
+- brax_forward: brax's `pipeline_step` as shipped;
+- trained_forward: the step ILD's training rollouts run without `planar_adjoint` (the
+  task's config otherwise: `lean_substeps`, `positional_joints` or `hand_adjoint` and its
+  pieces, substep remat), which is also the forward `planar_adjoint` keeps;
 - planar_forward: `control_step`;
-- brax_vjp: the step's value and its VJP in the whole state and the action, XLA's reverse
-  mode of brax's step, for a cotangent equal to the output;
+- brax_vjp, trained_vjp: the step's value and its VJP in the whole state and the action,
+  for a cotangent equal to the output (XLA's reverse mode; trained_vjp with the config's
+  hand-written VJPs and rematerialized substeps);
 - planar_vjp: the same for `control_step` in the centre-of-mass frames and the action.
 Prints each row and the VJP / forward ratios.
 """
@@ -29,7 +34,12 @@ from tasks import make_task
 
 def rows(task_name: str, batch: int):
     """{row: (jitted function, args)} on `batch` envs 10 steps after reset."""
-    env = make_task(task_name).env
+    import dataclasses
+
+    from methods.ild.benchmark import task_config
+    from methods.ild.train import rollout_physics
+    task = make_task(task_name)
+    env = task.env
     inner = env.unwrapped
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
     act = 0.5 * jnp.sin(jnp.arange(batch * inner.action_size, dtype=jnp.float32)
@@ -38,9 +48,18 @@ def rows(task_name: str, batch: int):
     for _ in range(10):
         s = step(s, act)
     ps = s.pipeline_state
-    sc, n = planar.planar_scene(inner.sys), inner._n_frames
+    n = inner._n_frames
+    if task.spec.backend == "spring":
+        import tasks.planar_spring as planar_spring
+        sc = planar_spring.spring_scene(inner.sys)
+        planar_fwd = jax.vmap(lambda xi, xdi, a: planar_spring.control_step(
+            sc, inner.sys, xi, xdi, a, n))
+    else:
+        sc = planar.planar_scene(inner.sys)
+        planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
+    cfg = dataclasses.replace(task_config(task_name, batch, {}), planar_adjoint=False)
+    trained_fwd = jax.vmap(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
     brax_fwd = jax.vmap(inner.pipeline_step)
-    planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
 
     def vjp(f):
         def run(*args):
@@ -49,8 +68,10 @@ def rows(task_name: str, batch: int):
         return jax.jit(run)
 
     return {"brax_forward": (jax.jit(brax_fwd), (ps, act)),
+            "trained_forward": (jax.jit(trained_fwd), (ps, act)),
             "planar_forward": (jax.jit(planar_fwd), (ps.x_i, ps.xd_i, act)),
             "brax_vjp": (vjp(brax_fwd), (ps, act)),
+            "trained_vjp": (vjp(trained_fwd), (ps, act)),
             "planar_vjp": (vjp(planar_fwd), (ps.x_i, ps.xd_i, act))}
 
 
@@ -76,10 +97,11 @@ def main(argv=None):
     for name, us in med.items():
         print(f"{a.task} B={a.batch} {name}: {us:.1f} us per call "
               f"(rounds {min(times[name]):.1f}-{max(times[name]):.1f})")
-    for kind in ("brax", "planar"):
+    for kind in ("brax", "trained", "planar"):
         print(f"{kind}: vjp / forward {med[f'{kind}_vjp'] / med[f'{kind}_forward']:.2f}x")
-    print(f"planar / brax: forward {med['planar_forward'] / med['brax_forward']:.3f}x, "
-          f"vjp {med['planar_vjp'] / med['brax_vjp']:.3f}x")
+    for kind in ("brax", "trained"):
+        print(f"planar / {kind}: forward {med['planar_forward'] / med[f'{kind}_forward']:.3f}x"
+              f", vjp {med['planar_vjp'] / med[f'{kind}_vjp']:.3f}x")
     return med
 
 

@@ -1,0 +1,164 @@
+"""`planar_adjoint` on the spring backend: brax's spring control step written over the plane
+hopper and walker2d move in (`tasks.planar_spring`), differentiated in place of the step ILD
+trains with. The same values and derivative as that step, with contacts active, and clear
+refusals where a scene leaves the plane."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax import com, contact, kinematics
+
+import tasks.planar as planar
+import tasks.planar_spring as planar_spring
+from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.config import ILDConfig
+from methods.ild.train import make_rollout_loss, rollout_physics
+from tasks import make_task
+from tasks.core import Task, planar_adjoint_refusal, with_planar_adjoint
+from tests.test_hand_adjoint import _states
+from tests.test_planar import assert_same_vjp
+
+F = planar._f32
+
+
+def test_spring_scene_reads_hopper_and_walker2d():
+    """hopper: a planar root (slides along x and z, rows 0 and 1; the hinge about y, row 2)
+    under the world, three hinges below it, each limited (the foot's to +/-0.785 rad);
+    gravity -9.81 along z in 0.002-s substeps; the foot capsule's two ends (half-length
+    0.195, radius 0.06, friction 2) on the floor, the impulse reading flat entry 3 of brax's
+    inverse inertias (link 0's row 1, column 0). walker2d: the same root, six hinges in two
+    legs, and six contacts (torso, both feet), reading flat entries 0, 3 and 6."""
+    sys = make_task("hopper").env.unwrapped.sys
+    sc = planar_spring.spring_scene(sys)
+    root, thigh, leg, foot = sc.links
+    assert [ln.parent for ln in sc.links] == [-1, 0, 1, 2]
+    assert root.root and not any(ln.root for ln in (thigh, leg, foot))
+    assert root.dofs == (0, 1, 2) and foot.dofs == (5,)
+    assert root.slides == ((0, (1.0, 0.0, 0.0)), (1, (0.0, 0.0, 1.0))) and root.turn == 2
+    assert thigh.limit == (F(-2.61799), 0.0) and foot.limit == (F(-0.785398), F(0.785398))
+    assert sc.gravity == (0.0, 0.0, F(-9.81)) and sc.dt == F(0.002)
+    assert sc.actuators[0][:2] == (3, 200.0)
+    c0, c1 = sc.contacts
+    assert (c0.link, c1.link) == (3, 3) and (c0.half, c1.half) == (F(0.195), F(-0.195))
+    assert c0.radius == F(0.06) and c0.friction == 2.0 and c0.flat == (0, 1, 0)
+    assert c0.normal == (0.0, 0.0, 1.0)
+    assert planar_spring.spring_refusal(sys) is None
+    walker = planar_spring.spring_scene(make_task("walker2d").env.unwrapped.sys)
+    assert [ln.parent for ln in walker.links] == [-1, 0, 1, 2, 0, 4, 5]
+    assert [c.link for c in walker.contacts] == [0, 0, 3, 3, 6, 6]
+    assert [c.flat for c in walker.contacts[::2]] == [(0, 0, 0), (0, 1, 0), (0, 2, 0)]
+    assert [c.friction for c in walker.contacts] == [F(0.9)] * 4 + [F(1.9)] * 2
+
+
+def test_spring_planar_adjoint_refuses_what_it_does_not_model():
+    """ant and humanoid (free roots, joints that turn about other axes), hopper with gravity
+    along y, with its thigh's hinge turned about x (its substep leaves the plane) or with
+    a fluid: each refused by name. The config pairs planar_adjoint with hand_adjoint (the
+    forward it keeps) but not with small_dots or closed_form_adjoint."""
+    for name in ("ant", "humanoid"):
+        with pytest.raises(ValueError, match=f"'{name}': it has a joint that is neither one "
+                                             "dof nor a planar root; planar_adjoint"):
+            with_planar_adjoint(make_task(name))
+    hopper = make_task("hopper")
+    assert planar_adjoint_refusal(hopper) is None
+    sys = hopper.env.unwrapped.sys
+    assert planar_spring.spring_refusal(sys.replace(gravity=jnp.array([0.0, -9.81, 0.0]))) == (
+        "its gravity is not in the x-z plane")
+    assert planar_spring.spring_refusal(sys.replace(enable_fluid=True)) == (
+        "it has fluid forces")
+    motion = sys.dof.motion.replace(ang=sys.dof.motion.ang.at[3].set(jnp.array([1.0, 0, 0])))
+    why = planar_spring.spring_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
+    assert why.startswith("a substep moves it out of the x-z plane ("), why
+    ILDConfig(planar_adjoint=True, hand_adjoint=True, hinge_forces=True, planar_root=True)
+    for other in ("closed_form_adjoint", "small_dots"):
+        with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
+            ILDConfig(planar_adjoint=True, **{other: True})
+
+
+def _consistent(sys, ps, x_i, xd_i):
+    """`ps` with every frame, joint coordinate and the inverse inertia computed from `x_i`,
+    `xd_i`, as brax's spring substep ends (the function of those frames `control_step`
+    is)."""
+    x, xd = com.to_world(sys, x_i, xd_i)
+    j, jd, a_p, a_c = kinematics.world_to_joint(sys, x, xd)
+    q, qd = kinematics.inverse(sys, j, jd)
+    return ps.replace(x=x, xd=xd, x_i=x_i, xd_i=xd_i, j=j, jd=jd, a_p=a_p, a_c=a_c, q=q,
+                      qd=qd, i_inv=com.inv_inertia(sys, x))
+
+
+def _control_steps(name: str):
+    """(trained, ours, args): one control step of 8 envs of `name` 15 steps after reset
+    (hopper's foot on the floor in half of them), as functions of (x_i, xd_i, action)
+    returning `control_step`'s outputs: the step ILD trains with (its config without
+    planar_adjoint: hand_adjoint's spring substep, lean substeps) with the state's other
+    fields computed from x_i, xd_i, and the planar form."""
+    task, ps, act = _states(name, steps=15)
+    cfg = dataclasses.replace(task_config(name, 8, {}), planar_adjoint=False)
+    env = rollout_physics(task, cfg).env.unwrapped
+    sys, n = env.sys, env._n_frames
+    sc = planar_spring.spring_scene(sys)
+    ours = jax.vmap(lambda xi, xdi, a: planar_spring.control_step(sc, sys, xi, xdi, a, n))
+
+    def trained(xi, xdi, a):
+        step = lambda p_, xi_, xdi_, a_: env.pipeline_step(  # noqa: E731
+            _consistent(sys, p_, xi_, xdi_), a_)
+        return planar.cotangent(jax.vmap(step)(ps, xi, xdi, a))
+
+    dist = jax.vmap(lambda x: contact.get(sys, x).dist)(ps.x)
+    return trained, ours, (ps.x_i, ps.xd_i, act), dist
+
+
+@pytest.mark.parametrize("name", ["hopper", pytest.param("walker2d", marks=pytest.mark.slow)])
+def test_spring_control_step_is_the_trained_step(name):
+    """Every frame and joint coordinate of the step ILD trains with, to float32 round-off,
+    with contacts active (some capsule ends below the floor): positions within 5e-7 and
+    velocities within 2e-5 (measured on hopper: 1.4e-7 and 5.5e-6; walker2d 1.8e-7 and
+    3.4e-6). Out-of-plane entries are exactly zero here."""
+    trained, ours, args, dist = _control_steps(name)
+    assert int((dist < 0).sum()) >= 2  # contacts in play
+    want, got = jax.jit(trained)(*args), jax.jit(ours)(*args)
+    for nm, w, g in zip(planar.OUTPUTS, want[0], got[0]):
+        tol = 2e-5 if nm in ("xd", "xd_i", "jd") else 5e-7
+        for wk, gk in zip(w, g):
+            np.testing.assert_allclose(gk, wk, rtol=0, atol=tol, err_msg=nm)
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=5e-7)
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=2e-5)
+    assert float(jnp.abs(got[0][0][0][..., 1]).max()) == 0.0  # x.pos's y: exactly zero
+    assert float(jnp.abs(got[2]).max()) > 1.0  # the envs move
+
+
+# the trained step's reverse mode, compiled: ~1.5 minutes on one core (in the default run since
+# session 69: planar_adjoint is hopper's and walker2d's default)
+def test_spring_control_step_vjp_is_the_trained_steps():
+    """hopper, contacts active: the VJP in the centre-of-mass frames and the action, for a
+    sine cotangent of the in-plane entries of every output, against the reverse mode of
+    the step ILD trains with (hand_adjoint's VJPs) as a function of those frames, within
+    1e-4 of each leaf's largest entry."""
+    trained, ours, args, _ = _control_steps("hopper")
+    assert_same_vjp(trained, ours, args)
+
+
+@pytest.mark.slow  # two rollout-gradient compiles: ~2.5 minutes on one core
+@pytest.mark.parametrize("name", ["hopper", "walker2d"])
+def test_spring_planar_adjoint_is_the_same_rollout_and_gradient(name):
+    """ILD's rollout loss and policy gradient over 16 steps (B = 8, the task's config):
+    the same loss bit for bit (the task's own step computes the rollout) and every gradient
+    leaf within 1e-5 of its largest entry (measured on hopper: 3.2e-7)."""
+    task = make_task(name)
+    task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
+    out = []
+    for on in (False, True):
+        cfg = dataclasses.replace(task_config(name, 8, {}), planar_adjoint=on)
+        policy, goals, norm, params, k = speed_setup(task, cfg)
+        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        init_keys = jax.random.split(k[2], 8)
+        out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
+    (want_l, want), (got_l, got) = out
+    assert float(got_l) == float(want_l)
+    flat = jax.tree_util.tree_flatten_with_path(want)[0]
+    for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * float(jnp.abs(w).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
