@@ -405,11 +405,11 @@ def control_step(sc: SpringScene, sys, x_i, xd_i, act: jax.Array, n_frames: int)
     tau = joint_torques(sc, act)
     arrays = (x_i.pos, x_i.rot, xd_i.vel, xd_i.ang)
     for _ in range(n_frames):
-        xi, xdi = substep(sc, *_tuples(*arrays), tau)
+        xi, xdi = substep(sc, *_tuples(*arrays, stacked=True), tau)
         arrays = jax.lax.optimization_barrier(
             (_array([t[0] for t in xi], dtype), _array([t[1] for t in xi], dtype),
              _array([m[0] for m in xdi], dtype), _array([m[1] for m in xdi], dtype)))
-    frames, _ = _frames(sc, *_tuples(*arrays))
+    frames, _ = _frames(sc, *_tuples(*arrays, stacked=True))
     out = tuple((_array([f[0] for f in frames[name]], dtype),
                  _array([f[1] for f in frames[name]], dtype)) for name in OUTPUTS)
     j = Transform(pos=out[OUTPUTS.index("j")][0], rot=out[OUTPUTS.index("j")][1])

@@ -229,12 +229,14 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
 
 
 @pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
-def test_step_cost_script_times_four_rows(results_script):
-    """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): four rows,
-    each a positive time."""
+def test_step_cost_script_times_six_rows(results_script):
+    """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): six rows
+    (brax's step, the trained step and the planar form, each forward and as a VJP), each a
+    positive time."""
     with results_script("planar", "step_cost") as mod:
         med = mod.main(["--batch", "4", "--calls", "2", "--rounds", "1"])
-    assert set(med) == {"brax_forward", "planar_forward", "brax_vjp", "planar_vjp"}
+    assert set(med) == {f"{kind}_{what}" for kind in ("brax", "trained", "planar")
+                        for what in ("forward", "vjp")}
     assert all(v > 0 for v in med.values())
 
 
