@@ -466,7 +466,7 @@ def planar_adjoint_refusal(task: Task) -> str | None:
     return None
 
 
-def with_planar_adjoint(task: Task) -> Task:
+def with_planar_adjoint(task: Task, links: bool = False) -> Task:
     """A fresh copy of brax positional or spring task `task` whose control step runs
     `task`'s own (brax's, or a `with_lean_substeps` / `with_positional_joints` /
     `with_hand_adjoint` copy's: the same values) and, in reverse mode, the VJP of
@@ -479,11 +479,16 @@ def with_planar_adjoint(task: Task) -> Task:
     resets begin, by computing them from those frames), so the output's cotangents in all
     of them go back to the input's `x_i`, `xd_i` and the action, and the input's other
     fields carry none. Each step's backward recomputes the planar step from its input (what
-    the forward stores), as `with_substep_remat` recomputes brax's substeps. Errors for a task it does not fit
-    (`planar_adjoint_refusal`)."""
+    the forward stores), as `with_substep_remat` recomputes brax's substeps. `links`: the
+    spring step with every link at once (`tasks.planar_links.control_step`, the same values
+    in fewer operations). Errors for a task it does not fit (`planar_adjoint_refusal`)."""
     why = planar_adjoint_refusal(task)
     if why is not None:
         raise ValueError(why)
+    if links and task.spec.backend != "spring":
+        raise ValueError(f"task {task.name!r} runs {task.spec.backend!r} physics; "
+                         "planar_links writes brax's spring step over the links (hopper, "
+                         "walker2d): leave it False")
     from tasks.planar import control_step, cotangent, planar_scene
     env = build_env(task.spec)
     inner, given = env.unwrapped, task.env.unwrapped
@@ -494,6 +499,9 @@ def with_planar_adjoint(task: Task) -> Task:
     else:
         from tasks.planar_spring import control_step as spring_step, spring_scene
         scene = spring_scene(given.sys)
+        if links:
+            from tasks.planar_links import control_step as spring_step, link_scene
+            scene = link_scene(scene)
         closed_form = lambda *a: spring_step(scene, given.sys, *a, n_frames)  # noqa: E731
     inner.pipeline_step = _step_with_adjoint(  # the task's own step: brax's or a rebuilt one
         given.pipeline_step, ("x_i", "xd_i"), closed_form, cotangent)

@@ -1065,7 +1065,7 @@ def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeyp
     assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
     assert benchmark.task_config("hopper", 8) == ILDConfig(
         num_envs=8, lean_substeps=True, hand_adjoint=True, hinge_forces=True, planar_root=True,
-        planar_adjoint=True)
+        planar_adjoint=True, planar_links=True)
     assert benchmark.task_config("pointmass", 8) == ILDConfig(num_envs=8)
     compiled = []
     real = benchmark.make_update

@@ -229,14 +229,16 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
 
 
 @pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
-def test_step_cost_script_times_six_rows(results_script):
+@pytest.mark.parametrize("task", ["inverted_pendulum", "hopper"])
+def test_step_cost_script_times_its_rows(results_script, task):
     """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): six rows
-    (brax's step, the trained step and the planar form, each forward and as a VJP), each a
-    positive time."""
+    (brax's step, the trained step and the planar form, each forward and as a VJP), and on
+    a spring task (hopper) two more (the planar form over the links), each a positive
+    time."""
     with results_script("planar", "step_cost") as mod:
-        med = mod.main(["--batch", "4", "--calls", "2", "--rounds", "1"])
-    assert set(med) == {f"{kind}_{what}" for kind in ("brax", "trained", "planar")
-                        for what in ("forward", "vjp")}
+        med = mod.main(["--task", task, "--batch", "4", "--calls", "2", "--rounds", "1"])
+    kinds = ("brax", "trained", "planar") + (("links",) if task == "hopper" else ())
+    assert set(med) == {f"{kind}_{what}" for kind in kinds for what in ("forward", "vjp")}
     assert all(v > 0 for v in med.values())
 
 

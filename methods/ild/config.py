@@ -255,6 +255,14 @@ class ILDConfig:
     (tests/test_planar.py, tests/test_planar_spring.py). Tasks whose scene leaves the plane
     (reacher: a two-dof joint, and gravity along its hinges; ant, humanoid) or other
     backends refuse it. Off in the class; `PLANAR_ADJOINT_TASKS` turn it on."""
+    planar_links: bool = False
+    """With `planar_adjoint` on the spring backend (hopper, walker2d): its planar step written
+    with every link at once (`tasks.planar_links.control_step`: each entry an array over
+    the links, what a link reads of another through products with constant one-hot
+    matrices) instead of one scalar per link and entry (`tasks.planar_spring`). The same
+    rollout and gradient to float32 round-off (tests/test_planar_links.py), in fewer
+    operations. Off in the class; `PLANAR_LINKS_TASKS` turn it on. Needs
+    `planar_adjoint`; positional tasks refuse it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -295,6 +303,9 @@ class ILDConfig:
                f"planar_adjoint differentiates brax's step through its planar form; {other} "
                f"rewrites another: set one of them False")
               for other in PLANAR_ADJOINT_EXCLUDES),
+            (self.planar_adjoint or not self.planar_links,
+             "planar_links writes planar_adjoint's spring step over the links; set "
+             "planar_adjoint True or planar_links False"),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
@@ -448,3 +459,12 @@ _merge_overrides(POSITIONAL_JOINTS_TASKS, positional_joints=True)
 # update / forward 3.25x -> 2.18x. Their 3- and 10-minute ILD cells were recorded before it.
 PLANAR_ADJOINT_TASKS = ("inverted_pendulum", "hopper", "walker2d")
 _merge_overrides(PLANAR_ADJOINT_TASKS, planar_adjoint=True)
+
+# The planar spring step with every link at once (session 70, `tasks.planar_links`): the same
+# rollout, its gradient the same to float32 round-off (tests/test_planar_links.py); one core,
+# B = 32, paired against the same update with the per-link planar step
+# (results/planar_links/paired_session70_*.csv): updates 1.47x (walker2d) and 1.17x (hopper)
+# faster, update / forward 2.84x -> 1.88x and 2.30x -> 1.98x. Session 70 re-ran their 3- and
+# 10-minute ILD cells with it.
+PLANAR_LINKS_TASKS = ("hopper", "walker2d")
+_merge_overrides(PLANAR_LINKS_TASKS, planar_links=True)

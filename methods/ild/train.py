@@ -306,8 +306,8 @@ def rollout_physics(task, config: ILDConfig):
     with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`) or brax's
     positional substep for hinges and slides (`positional_joints`), and/or
     with small matrix products as multiply-and-sum, or differentiated through its
-    closed-form step (`closed_form_adjoint`) or its planar form (`planar_adjoint`), as
-    configured."""
+    closed-form step (`closed_form_adjoint`) or its planar form (`planar_adjoint`; over all
+    links at once with `planar_links`), as configured."""
     if not config.joint_limits:
         task = without_joint_limits(task)
     if config.closed_form_adjoint:  # its backward never reads brax's substeps
@@ -327,7 +327,7 @@ def rollout_physics(task, config: ILDConfig):
     if config.small_dots:
         task = with_small_dots(task)
     if config.planar_adjoint:  # the forward built above, differentiated through the plane
-        task = with_planar_adjoint(task)
+        task = with_planar_adjoint(task, links=config.planar_links)
     return task
 
 

@@ -16,7 +16,9 @@ by round):
 - brax_vjp, trained_vjp: the step's value and its VJP in the whole state and the action,
   for a cotangent equal to the output (XLA's reverse mode; trained_vjp with the config's
   hand-written VJPs and rematerialized substeps);
-- planar_vjp: the same for `control_step` in the centre-of-mass frames and the action.
+- planar_vjp: the same for `control_step` in the centre-of-mass frames and the action;
+- links_forward, links_vjp (spring tasks): the same for `tasks.planar_links.control_step`,
+  the planar spring step with every link at once (session 70).
 Prints each row and the VJP / forward ratios.
 """
 from __future__ import annotations
@@ -57,7 +59,14 @@ def rows(task_name: str, batch: int):
     else:
         sc = planar.planar_scene(inner.sys)
         planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
-    cfg = dataclasses.replace(task_config(task_name, batch, {}), planar_adjoint=False)
+    links_fwd = None
+    if task.spec.backend == "spring":
+        import tasks.planar_links as planar_links
+        ls = planar_links.link_scene(sc)
+        links_fwd = jax.vmap(lambda xi, xdi, a: planar_links.control_step(
+            ls, inner.sys, xi, xdi, a, n))
+    cfg = dataclasses.replace(task_config(task_name, batch, {}), planar_adjoint=False,
+                              planar_links=False)
     trained_fwd = jax.vmap(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
     brax_fwd = jax.vmap(inner.pipeline_step)
 
@@ -67,12 +76,16 @@ def rows(task_name: str, batch: int):
             return out, pull(out)
         return jax.jit(run)
 
-    return {"brax_forward": (jax.jit(brax_fwd), (ps, act)),
-            "trained_forward": (jax.jit(trained_fwd), (ps, act)),
-            "planar_forward": (jax.jit(planar_fwd), (ps.x_i, ps.xd_i, act)),
-            "brax_vjp": (vjp(brax_fwd), (ps, act)),
-            "trained_vjp": (vjp(trained_fwd), (ps, act)),
-            "planar_vjp": (vjp(planar_fwd), (ps.x_i, ps.xd_i, act))}
+    table = {"brax_forward": (jax.jit(brax_fwd), (ps, act)),
+             "trained_forward": (jax.jit(trained_fwd), (ps, act)),
+             "planar_forward": (jax.jit(planar_fwd), (ps.x_i, ps.xd_i, act)),
+             "brax_vjp": (vjp(brax_fwd), (ps, act)),
+             "trained_vjp": (vjp(trained_fwd), (ps, act)),
+             "planar_vjp": (vjp(planar_fwd), (ps.x_i, ps.xd_i, act))}
+    if links_fwd is not None:
+        table["links_forward"] = (jax.jit(links_fwd), (ps.x_i, ps.xd_i, act))
+        table["links_vjp"] = (vjp(links_fwd), (ps.x_i, ps.xd_i, act))
+    return table
 
 
 def main(argv=None):
@@ -97,11 +110,14 @@ def main(argv=None):
     for name, us in med.items():
         print(f"{a.task} B={a.batch} {name}: {us:.1f} us per call "
               f"(rounds {min(times[name]):.1f}-{max(times[name]):.1f})")
-    for kind in ("brax", "trained", "planar"):
+    forms = [k for k in ("planar", "links") if f"{k}_vjp" in med]
+    for kind in ("brax", "trained", *forms):
         print(f"{kind}: vjp / forward {med[f'{kind}_vjp'] / med[f'{kind}_forward']:.2f}x")
-    for kind in ("brax", "trained"):
-        print(f"planar / {kind}: forward {med['planar_forward'] / med[f'{kind}_forward']:.3f}x"
-              f", vjp {med['planar_vjp'] / med[f'{kind}_vjp']:.3f}x")
+    for form in forms:
+        for kind in ("brax", "trained", "planar")[:2 + (form == "links")]:
+            print(f"{form} / {kind}: forward "
+                  f"{med[f'{form}_forward'] / med[f'{kind}_forward']:.3f}x, vjp "
+                  f"{med[f'{form}_vjp'] / med[f'{kind}_vjp']:.3f}x")
     return med
 
 

@@ -1,0 +1,171 @@
+"""`planar_links`: the planar spring step (`tasks.planar_spring`) with every link at once
+(`tasks.planar_links`). Its constants over the links, the one-hot products that read across
+links, and the same control step, VJP and rollout gradient as the per-link form and the
+step ILD trains with."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tasks.planar as planar
+import tasks.planar_links as planar_links
+import tasks.planar_spring as planar_spring
+from methods.ild.benchmark import speed_setup, task_config
+from methods.ild.config import ILDConfig
+from methods.ild.train import make_rollout_loss, rollout_physics
+from tasks import make_task
+from tasks.core import Task, with_planar_adjoint
+from tests.test_planar import assert_same_vjp
+from tests.test_planar_spring import _control_steps
+
+F = planar._f32
+
+
+def test_link_scene_reads_hopper_over_its_links():
+    """hopper's four links (root, thigh, leg, foot) as entries over them: the parent matrix
+    (link k's parent in column k; the root's column empty), the spring axis (the root's
+    turning dof about +y, the hinges' a_0 about -y), the root's slides along x and z (zero
+    for the hinges), the limits (none at the root: infinite bounds, zero stiffness). An
+    entry that is the same on every link is one Python float, 0.0 where every link's is
+    zero (so it folds). The foot's two contacts read entry (1, 0) of link 0's inverse
+    inertia."""
+    ls = planar_links.link_scene(planar_spring.spring_scene(
+        make_task("hopper").env.unwrapped.sys))
+    lk, cs = ls.links, ls.contacts
+    np.testing.assert_array_equal(lk.parent, [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1],
+                                              [0, 0, 0, 0]])
+    np.testing.assert_array_equal(lk.root, [1, 0, 0, 0])
+    assert lk.spring_axis[0] == 0.0 and lk.spring_axis[2] == 0.0
+    np.testing.assert_array_equal(lk.spring_axis[1], [1, -1, -1, -1])
+    assert lk.fixed_axis[0] == 0.0 and lk.fixed_axis[2] == 0.0
+    np.testing.assert_array_equal(lk.fixed_axis[1], [0, -1, -1, -1])
+    assert lk.turned_axis[:1] == (0.0,) and lk.turned_axis[2] == 0.0
+    np.testing.assert_array_equal(lk.turned_axis[1], [1, 0, 0, 0])
+    np.testing.assert_array_equal(lk.slide0[0], [1, 0, 0, 0])
+    assert lk.slide0[1:] == (0.0, 0.0) and lk.slide1[:2] == (0.0, 0.0)
+    assert lk.limited and lk.dof_turn == (2, 3, 4, 5)
+    assert lk.dof_slides == ((0, 1), (-1, -1), (-1, -1), (-1, -1))
+    np.testing.assert_array_equal(lk.lo, np.float32([-np.inf, -2.61799, -2.61799, -0.785398]))
+    np.testing.assert_array_equal(lk.hi, np.float32([np.inf, 0.0, 0.0, 0.785398]))
+    assert lk.limit_stiffness[0] == 0.0 and np.all(lk.limit_stiffness[1:] > 0)
+    assert lk.transform[1] == (1.0, 0.0, 0.0, 0.0)  # every link's: the identity, folded
+    np.testing.assert_array_equal(cs.to_contacts, [[0, 0], [0, 0], [0, 0], [1, 1]])
+    assert cs.flat_entries == ((1, 0),) and cs.flat[:, 0].tolist() == [1, 0, 0, 0]
+    assert cs.half[0] == F(0.195) and cs.half[1] == F(-0.195) and cs.friction == 2.0
+
+
+def test_select_reads_across_links_by_one_product():
+    """`_select` on hand-made entries: array entries are the matrix's columns' picks (a
+    column with no row reads 0, one with two reads their sum), a constant entry stays the
+    Python float where every column picks one row and becomes count x constant elsewhere,
+    0.0 stays 0.0; all the array entries go through one product."""
+    m = np.array([[0, 1, 1], [1, 0, 1], [0, 0, 0]], np.float32)  # col 0: row 1; col 2: rows 0, 1
+    a = jnp.array([1.0, 2.0, 4.0])
+    (v, w), = [planar_links._select([(a, 0.0, 3.0), (a * 10, 2.0, 0.0)], m)]
+    np.testing.assert_array_equal(v[0], [2.0, 1.0, 3.0])
+    assert v[1] == 0.0
+    np.testing.assert_array_equal(v[2], [3.0, 3.0, 6.0])
+    np.testing.assert_array_equal(w[0], [20.0, 10.0, 30.0])
+    full = np.eye(3, dtype=np.float32)[:, [2, 0, 1]]
+    (u,) = planar_links._select([(a, 5.0, 0.0)], full)
+    np.testing.assert_array_equal(u[0], [4.0, 1.0, 2.0])
+    assert u[1] == 5.0 and isinstance(u[1], float) and u[2] == 0.0
+    ops = jax.make_jaxpr(lambda x: planar_links._select([(x, 1.0), (x, x)], m))(a)
+    assert [e.primitive.name for e in ops.eqns].count("dot_general") == 1
+
+
+def _link_steps(name: str):
+    """(trained, per_link, links, args): `_control_steps`' pair and the link form."""
+    trained, per_link, args, dist = _control_steps(name)
+    env = make_task(name).env.unwrapped
+    sys, n = env.sys, env._n_frames
+    ls = planar_links.link_scene(planar_spring.spring_scene(sys))
+    links = jax.vmap(lambda xi, xdi, a: planar_links.control_step(ls, sys, xi, xdi, a, n))
+    return trained, per_link, links, args, dist
+
+
+@pytest.mark.parametrize("name", ["hopper", pytest.param("walker2d", marks=pytest.mark.slow)])
+def test_link_control_step_is_the_trained_step(name):
+    """Every frame and joint coordinate of the step ILD trains with, to float32 round-off,
+    with contacts active: positions within 5e-7 and velocities within 2e-5 (measured:
+    hopper's and walker2d's within 1.2e-7 and 4.1e-6 of the per-link form's, whose own
+    distance to the trained step test_planar_spring bounds the same way). Out-of-plane
+    entries exactly zero."""
+    trained, per_link, links, args, dist = _link_steps(name)
+    assert int((dist < 0).sum()) >= 2  # contacts in play
+    want, got, other = jax.jit(trained)(*args), jax.jit(links)(*args), jax.jit(per_link)(*args)
+    for nm, w, g, o in zip(planar.OUTPUTS, want[0], got[0], other[0]):
+        tol = 2e-5 if nm in ("xd", "xd_i", "jd") else 5e-7
+        for wk, gk, ok in zip(w, g, o):
+            np.testing.assert_allclose(gk, wk, rtol=0, atol=tol, err_msg=nm)
+            np.testing.assert_allclose(gk, ok, rtol=0, atol=tol, err_msg=nm)
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=5e-7)
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=2e-5)
+    assert float(jnp.abs(got[0][0][0][..., 1]).max()) == 0.0  # x.pos's y: exactly zero
+    assert float(jnp.abs(got[2]).max()) > 1.0  # the envs move
+
+
+# the per-link step's VJP as the reference (itself tested against the trained step's in
+# test_planar_spring): ~40 s on one core for hopper, ~2.5 minutes for walker2d
+@pytest.mark.parametrize("name", ["hopper", pytest.param("walker2d", marks=pytest.mark.slow)])
+def test_link_control_step_vjp_is_the_per_link_steps(name):
+    """Contacts active: the VJP in the centre-of-mass frames and the action, for a sine
+    cotangent of every output's in-plane entries, within 1e-4 of each leaf's largest entry
+    of the per-link form's (finite where the root has no joint limit: its bounds are
+    infinite and its limit force's zero stiffness meets a finite angle)."""
+    _, per_link, links, args, _ = _link_steps(name)
+    assert_same_vjp(per_link, links, args)
+
+
+def test_planar_links_is_on_for_the_spring_tasks_planar_adjoint_takes():
+    """Since session 70 ILD trains with `planar_links` wherever planar_adjoint runs the
+    spring step (hopper, walker2d) and nowhere else; `--set planar_links=false` turns it off
+    alone."""
+    from bench.plugins import build_config, get_method
+    from methods.ild.config import PLANAR_ADJOINT_TASKS, PLANAR_LINKS_TASKS, TASK_OVERRIDES
+    on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_links")}
+    spring = {name for name in PLANAR_ADJOINT_TASKS if make_task(name).spec.backend == "spring"}
+    assert set(PLANAR_LINKS_TASKS) == on == spring == {"hopper", "walker2d"}
+    ild = get_method("ild")
+    walker = build_config(ild, "walker2d", "cpu", {})
+    assert walker.planar_links and walker.planar_adjoint
+    off = build_config(ild, "walker2d", "cpu", {"planar_links": "false"})
+    assert off == dataclasses.replace(walker, planar_links=False)
+
+
+def test_planar_links_is_refused_where_it_does_not_apply():
+    """The config needs planar_adjoint; a positional task (inverted_pendulum) refuses it by
+    name."""
+    with pytest.raises(ValueError, match="planar_links writes planar_adjoint's spring step"):
+        ILDConfig(planar_links=True)
+    ILDConfig(planar_adjoint=True, planar_links=True)
+    with pytest.raises(ValueError, match="'inverted_pendulum' runs 'positional' physics; "
+                                         "planar_links writes brax's spring step"):
+        with_planar_adjoint(make_task("inverted_pendulum"), links=True)
+
+
+@pytest.mark.slow  # two rollout-gradient compiles: ~2 minutes on one core
+def test_planar_links_is_the_same_rollout_and_gradient():
+    """ILD's rollout loss and policy gradient over 16 steps on walker2d (B = 8, the task's
+    config, planar_links off and on): the same loss bit for bit (the task's own step
+    computes the rollout) and every gradient leaf within 1e-5 of its largest entry of the
+    per-link form's."""
+    task = make_task("walker2d")
+    task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
+    out = []
+    for on in (False, True):
+        cfg = dataclasses.replace(task_config("walker2d", 8, {}), planar_adjoint=True,
+                                  planar_links=on)
+        policy, goals, norm, params, k = speed_setup(task, cfg)
+        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        init_keys = jax.random.split(k[2], 8)
+        out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
+    (want_l, want), (got_l, got) = out
+    assert float(got_l) == float(want_l)
+    flat = jax.tree_util.tree_flatten_with_path(want)[0]
+    for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * float(jnp.abs(w).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
