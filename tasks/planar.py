@@ -321,19 +321,23 @@ def _parent(frames, ln: Link, zero):
     return zero if ln.parent < 0 else frames[ln.parent]
 
 
+def joint_frames(ln, x_p, xd_p, xl, xdl):
+    """brax.kinematics.world_to_joint of link `ln` (its `transform` and `joint`) from its
+    parent's frames and its own: (j, jd, a_p, a_c). Also of every link at once, over
+    entries that are arrays over the links (`tasks.planar_links`)."""
+    a_p = compose(compose(x_p, ln.transform), ln.joint)
+    a_c = compose(xl, ln.joint)
+    inv = quat_inv(a_p[1])
+    j = (rotate(vsub(a_c[0], a_p[0]), inv), quat_mul(inv, a_c[1]))
+    wj = shift_motion(vsub(x_p[0], a_p[0]), xd_p)
+    jd = (inv_rotate(vsub(xdl[0], wj[0]), a_p[1]), inv_rotate(vsub(xdl[1], wj[1]), a_p[1]))
+    return j, jd, a_p, a_c
+
+
 def world_to_joint(sc: Scene, x, xd):
     """brax.kinematics.world_to_joint: (j, jd, a_p, a_c) per link."""
-    out = []
-    for ln, xl, xdl in zip(sc.links, x, xd):
-        x_p, xd_p = _parent(x, ln, ZERO_T), _parent(xd, ln, ZERO_M)
-        a_p = compose(compose(x_p, ln.transform), ln.joint)
-        a_c = compose(xl, ln.joint)
-        inv = quat_inv(a_p[1])
-        j = (rotate(vsub(a_c[0], a_p[0]), inv), quat_mul(inv, a_c[1]))
-        wj = shift_motion(vsub(x_p[0], a_p[0]), xd_p)
-        jd = (inv_rotate(vsub(xdl[0], wj[0]), a_p[1]), inv_rotate(vsub(xdl[1], wj[1]), a_p[1]))
-        out.append((j, jd, a_p, a_c))
-    return out
+    return [joint_frames(ln, _parent(x, ln, ZERO_T), _parent(xd, ln, ZERO_M), xl, xdl)
+            for ln, xl, xdl in zip(sc.links, x, xd)]
 
 
 def inv_inertia(ln: Link, rot):

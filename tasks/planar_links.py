@@ -27,9 +27,10 @@ from brax import kinematics
 from brax.base import Motion, Transform
 
 from tasks.planar import (IDENTITY, LIVE, OUTPUTS, WIDTH, _is, add, compose, cross, div, dot,
-                          inv_inertia, inv_rotate, matvec, mul, neg, quat_inv, quat_mul,
-                          rotate, shift_motion, sub, vadd, vscale, vsub)
-from tasks.planar_spring import SpringScene, _excess, integrate, joint_torques, z_axis
+                          inv_inertia, joint_frames, matvec, mul, neg, quat_mul, rotate,
+                          shift_motion, sub, vadd, vscale, vsub)
+from tasks.planar_spring import (SpringScene, _excess, integrate, joint_torques, normalize,
+                                 safe_norm, z_axis)
 
 
 def _lc(values):
@@ -182,24 +183,6 @@ def _select(vectors, matrix):
 # ----------------------------------------------------------------------------------------
 
 
-def _safe_norm(v):
-    """`tasks.planar_spring.safe_norm`, link by link."""
-    live = [a for a in v if not _is(a, 0.0)]
-    if not live:
-        return 0.0
-    is_zero = jnp.all(jnp.stack([jnp.abs(a) <= 1e-8 for a in live]), axis=0)
-    shifted = tuple(add(a, is_zero * 1.0) for a in v)
-    return jnp.sqrt(dot(shifted, shifted)) * (1.0 - is_zero)
-
-
-def _normalize(v):
-    norm = _safe_norm(v)
-    if _is(norm, 0.0):
-        return v
-    scale = norm + 1e-6 * (norm == 0.0)
-    return tuple(div(a, scale) for a in v)
-
-
 def _to_world(lk: Links, x_i, xd_i):
     x = compose(x_i, (lk.neg_com, IDENTITY))
     return x, shift_motion(vsub(x[0], x_i[0]), xd_i)
@@ -208,14 +191,7 @@ def _to_world(lk: Links, x_i, xd_i):
 def _world_to_joint(lk: Links, x, xd):
     pos_p, rot_p, vel_p, ang_p = _select([x[0], x[1], xd[0], xd[1]], lk.parent)
     rot_p = (add(rot_p[0], lk.root), *rot_p[1:])  # the world: the identity
-    x_p, xd_p = (pos_p, rot_p), (vel_p, ang_p)
-    a_p = compose(compose(x_p, lk.transform), lk.joint)
-    a_c = compose(x, lk.joint)
-    inv = quat_inv(a_p[1])
-    j = (rotate(vsub(a_c[0], a_p[0]), inv), quat_mul(inv, a_c[1]))
-    wj = shift_motion(vsub(x_p[0], a_p[0]), xd_p)
-    jd = (inv_rotate(vsub(xd[0], wj[0]), a_p[1]), inv_rotate(vsub(xd[1], wj[1]), a_p[1]))
-    return j, jd, a_p, a_c
+    return joint_frames(lk, (pos_p, rot_p), (vel_p, ang_p), x, xd)
 
 
 def _per_link(values, dofs):
@@ -243,7 +219,7 @@ def _joint_force(lk: Links, tau, j, jd):
     ang = vsub(ang, vscale(lk.ang_damping, jd[1]))
     if lk.limited:
         a0, a1, a2 = lk.limit_axes
-        lon = _normalize(cross(rotate(a2, j[1]), a0))
+        lon = normalize(cross(rotate(a2, j[1]), a0))
         psi = jnp.arctan2(dot(cross(a1, lon), a0), dot(a1, lon))
         dang = _excess(psi, lk.lo, lk.hi)
         ang = vsub(ang, vscale(dang, vscale(lk.limit_stiffness, a0)))
@@ -294,7 +270,7 @@ def _collisions(ls: LinkScene, x, x_i, xd_i, i_inv):
     impulse = (sub(mul(-(1.0 + c.elasticity), normal_vel), mul(sc.erp_dt, dist))
                / add(c.inv_mass, ang))
     vel_d = vadd(contact_vel, vscale(normal_vel, c.normal))
-    speed = _safe_norm(vel_d)
+    speed = safe_norm(vel_d)
     dir_d = tuple(div(a, 1e-6 + speed) for a in vel_d)
     ang_d = dot(dir_d, cross(vscale(flat, cross(rel_pos, dir_d)), rel_pos))
     impulse_d = jnp.minimum(speed / add(c.inv_mass, ang_d), c.friction * impulse)

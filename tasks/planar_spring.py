@@ -1,7 +1,9 @@
 """brax's spring control step for a scene that moves in the x-z plane, written as the scene
 needs it: hopper's and walker2d's. ILD differentiates it in place of brax's step
 (`planar_adjoint` on the spring backend, `tasks.core.with_planar_adjoint`; hopper's and
-walker2d's default since session 69), as `tasks.planar` does for brax's positional step.
+walker2d's default since session 69, and since session 70 in its form over all links at
+once, `tasks.planar_links`, which reads its constants from here), as `tasks.planar` does for
+brax's positional step.
 Paired on one CPU core at B = 32 against the update through the trained step's
 hand-written VJPs, hopper's update ran 1.45x as fast (update / forward 3.25x -> 2.18x;
 results/planar_spring/paired_session69_hopper.csv, results/JOURNAL.md, session 69).
@@ -230,11 +232,12 @@ def spring_scene(sys) -> SpringScene | str:
 
 def safe_norm(v):
     """brax.math.safe_norm: |v|, and 0 with a zero gradient where every entry is within
-    1e-8 of zero."""
+    1e-8 of zero (entry by entry where the entries are arrays over links:
+    `tasks.planar_links`)."""
     live = [a for a in v if not _is(a, 0.0)]
     if not live:
         return 0.0
-    is_zero = jnp.all(jnp.stack([jnp.abs(a) <= 1e-8 for a in live]))
+    is_zero = jnp.all(jnp.stack([jnp.abs(a) <= 1e-8 for a in live]), axis=0)
     shifted = tuple(add(a, is_zero * 1.0) for a in v)
     return jnp.sqrt(dot(shifted, shifted)) * (1.0 - is_zero)
 

@@ -12,13 +12,11 @@ import pytest
 import tasks.planar as planar
 import tasks.planar_links as planar_links
 import tasks.planar_spring as planar_spring
-from methods.ild.benchmark import speed_setup, task_config
 from methods.ild.config import ILDConfig
-from methods.ild.train import make_rollout_loss, rollout_physics
 from tasks import make_task
-from tasks.core import Task, with_planar_adjoint
+from tasks.core import with_planar_adjoint
 from tests.test_planar import assert_same_vjp
-from tests.test_planar_spring import _control_steps
+from tests.test_planar_spring import _control_steps, assert_same_rollout_gradient
 
 F = planar._f32
 
@@ -122,7 +120,7 @@ def test_link_control_step_vjp_is_the_per_link_steps(name):
 def test_planar_links_is_on_for_the_spring_tasks_planar_adjoint_takes():
     """Since session 70 ILD trains with `planar_links` wherever planar_adjoint runs the
     spring step (hopper, walker2d) and nowhere else; `--set planar_links=false` turns it off
-    alone."""
+    alone, and `--set planar_adjoint=false` takes it with it."""
     from bench.plugins import build_config, get_method
     from methods.ild.config import PLANAR_ADJOINT_TASKS, PLANAR_LINKS_TASKS, TASK_OVERRIDES
     on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_links")}
@@ -133,6 +131,8 @@ def test_planar_links_is_on_for_the_spring_tasks_planar_adjoint_takes():
     assert walker.planar_links and walker.planar_adjoint
     off = build_config(ild, "walker2d", "cpu", {"planar_links": "false"})
     assert off == dataclasses.replace(walker, planar_links=False)
+    none = build_config(ild, "walker2d", "cpu", {"planar_adjoint": "false"})
+    assert none == dataclasses.replace(walker, planar_adjoint=False, planar_links=False)
 
 
 def test_planar_links_is_refused_where_it_does_not_apply():
@@ -152,20 +152,4 @@ def test_planar_links_is_the_same_rollout_and_gradient():
     config, planar_links off and on): the same loss bit for bit (the task's own step
     computes the rollout) and every gradient leaf within 1e-5 of its largest entry of the
     per-link form's."""
-    task = make_task("walker2d")
-    task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
-    out = []
-    for on in (False, True):
-        cfg = dataclasses.replace(task_config("walker2d", 8, {}), planar_adjoint=True,
-                                  planar_links=on)
-        policy, goals, norm, params, k = speed_setup(task, cfg)
-        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
-        init_keys = jax.random.split(k[2], 8)
-        out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
-    (want_l, want), (got_l, got) = out
-    assert float(got_l) == float(want_l)
-    flat = jax.tree_util.tree_flatten_with_path(want)[0]
-    for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
-        np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * float(jnp.abs(w).max()),
-                                   err_msg=jax.tree_util.keystr(path))
-    assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0
+    assert_same_rollout_gradient("walker2d", {"planar_links": False}, {"planar_links": True})

@@ -95,7 +95,7 @@ def _control_steps(name: str):
     planar_adjoint: hand_adjoint's spring substep, lean substeps) with the state's other
     fields computed from x_i, xd_i, and the planar form."""
     task, ps, act = _states(name, steps=15)
-    cfg = dataclasses.replace(task_config(name, 8, {}), planar_adjoint=False)
+    cfg = task_config(name, 8, {"planar_adjoint": False})
     env = rollout_physics(task, cfg).env.unwrapped
     sys, n = env.sys, env._n_frames
     sc = planar_spring.spring_scene(sys)
@@ -143,14 +143,22 @@ def test_spring_control_step_vjp_is_the_trained_steps():
 @pytest.mark.slow  # two rollout-gradient compiles: ~2.5 minutes on one core
 @pytest.mark.parametrize("name", ["hopper", "walker2d"])
 def test_spring_planar_adjoint_is_the_same_rollout_and_gradient(name):
-    """ILD's rollout loss and policy gradient over 16 steps (B = 8, the task's config):
-    the same loss bit for bit (the task's own step computes the rollout) and every gradient
-    leaf within 1e-5 of its largest entry (measured on hopper: 3.2e-7)."""
+    """ILD's rollout loss and policy gradient over 16 steps (B = 8, the task's config, with
+    and without planar_adjoint, whose planar_links goes with it): the same loss bit for bit
+    (the task's own step computes the rollout) and every gradient leaf within 1e-5 of its
+    largest entry (measured on hopper, per-link form: 3.2e-7)."""
+    assert_same_rollout_gradient(name, {"planar_adjoint": False}, {"planar_adjoint": True})
+
+
+def assert_same_rollout_gradient(name: str, a: dict, b: dict):
+    """ILD's rollout loss and policy gradient over 16 steps of `name` (B = 8), its task's
+    config with the fields `a` and with `b` (`task_config`'s overrides): the same loss bit for bit and every gradient leaf within
+    1e-5 of its largest entry, the gradient not all zero."""
     task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
     out = []
-    for on in (False, True):
-        cfg = dataclasses.replace(task_config(name, 8, {}), planar_adjoint=on)
+    for fields in (a, b):
+        cfg = task_config(name, 8, fields)
         policy, goals, norm, params, k = speed_setup(task, cfg)
         loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
         init_keys = jax.random.split(k[2], 8)

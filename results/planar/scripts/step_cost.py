@@ -36,7 +36,6 @@ from tasks import make_task
 
 def rows(task_name: str, batch: int):
     """{row: (jitted function, args)} on `batch` envs 10 steps after reset."""
-    import dataclasses
 
     from methods.ild.benchmark import task_config
     from methods.ild.train import rollout_physics
@@ -65,8 +64,7 @@ def rows(task_name: str, batch: int):
         ls = planar_links.link_scene(sc)
         links_fwd = jax.vmap(lambda xi, xdi, a: planar_links.control_step(
             ls, inner.sys, xi, xdi, a, n))
-    cfg = dataclasses.replace(task_config(task_name, batch, {}), planar_adjoint=False,
-                              planar_links=False)
+    cfg = task_config(task_name, batch, {"planar_adjoint": False})
     trained_fwd = jax.vmap(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
     brax_fwd = jax.vmap(inner.pipeline_step)
 
