@@ -595,15 +595,21 @@ def _rows_bwd(kind, res, ct):
 _rows.defvjp(_rows_fwd, _rows_bwd)
 
 
+def in_plane(entry, kind: str) -> tuple:
+    """A vector or quaternion of `kind` as a tuple: `entry(k)` for each in-plane entry k,
+    the static 0.0 for the others."""
+    return tuple(entry(k) if k in LIVE[kind] else 0.0 for k in range(WIDTH[kind]))
+
+
 def _from_rows(a, kind: str) -> list:
     """One link's row of a brax array per link as a tuple, its out-of-plane entries 0.0."""
-    return [tuple(row[LIVE[kind].index(k)] if k in LIVE[kind] else 0.0
-                  for k in range(a.shape[-1])) for row in _rows(a, kind)]
+    return [in_plane(lambda k, row=row: row[LIVE[kind].index(k)], kind)
+            for row in _rows(a, kind)]
 
 
 def _planar(a, kind: str) -> tuple:
     """One link's row of a brax array as a tuple, its out-of-plane entries 0.0."""
-    return tuple(a[k] if k in LIVE[kind] else 0.0 for k in range(a.shape[-1]))
+    return in_plane(lambda k: a[k], kind)
 
 
 def _tuples(pos, rot, vel, ang, stacked: bool = False):

@@ -26,7 +26,7 @@ import numpy as np
 from brax import kinematics
 from brax.base import Motion, Transform
 
-from tasks.planar import (IDENTITY, LIVE, OUTPUTS, WIDTH, _is, add, compose, cross, div, dot,
+from tasks.planar import (IDENTITY, OUTPUTS, _is, add, compose, cross, div, dot, in_plane,
                           inv_inertia, joint_frames, matvec, mul, neg, quat_mul, rotate,
                           shift_motion, sub, vadd, vscale, vsub)
 from tasks.planar_spring import (SpringScene, _excess, integrate, joint_torques, normalize,
@@ -301,7 +301,8 @@ def substep(ls: LinkScene, x_i, xd_i, tau):
 
 
 def _read(a, kind: str):
-    return tuple(a[:, k] if k in LIVE[kind] else 0.0 for k in range(WIDTH[kind]))
+    """Every link's row of a brax array, entry by entry over the links (`in_plane`)."""
+    return in_plane(lambda k: a[:, k], kind)
 
 
 def _write(t, num: int, dtype):
