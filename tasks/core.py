@@ -480,8 +480,8 @@ def with_planar_adjoint(task: Task, links: bool = False) -> Task:
     of them go back to the input's `x_i`, `xd_i` and the action, and the input's other
     fields carry none. Each step's backward recomputes the planar step from its input (what
     the forward stores), as `with_substep_remat` recomputes brax's substeps. `links`: the
-    spring step with every link at once (`tasks.planar_links.control_step`, the same values
-    in fewer operations). Errors for a task it does not fit (`planar_adjoint_refusal`)."""
+    spring step with every link at once (`tasks.planar_links.control_step`: the same values,
+    its VJP faster). Errors for a task it does not fit (`planar_adjoint_refusal`)."""
     why = planar_adjoint_refusal(task)
     if why is not None:
         raise ValueError(why)
