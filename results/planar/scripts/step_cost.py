@@ -50,20 +50,19 @@ def rows(task_name: str, batch: int):
         s = step(s, act)
     ps = s.pipeline_state
     n = inner._n_frames
+    links_fwd = None
     if task.spec.backend == "spring":
+        import tasks.planar_links as planar_links
         import tasks.planar_spring as planar_spring
         sc = planar_spring.spring_scene(inner.sys)
         planar_fwd = jax.vmap(lambda xi, xdi, a: planar_spring.control_step(
             sc, inner.sys, xi, xdi, a, n))
-    else:
-        sc = planar.planar_scene(inner.sys)
-        planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
-    links_fwd = None
-    if task.spec.backend == "spring":
-        import tasks.planar_links as planar_links
         ls = planar_links.link_scene(sc)
         links_fwd = jax.vmap(lambda xi, xdi, a: planar_links.control_step(
             ls, inner.sys, xi, xdi, a, n))
+    else:
+        sc = planar.planar_scene(inner.sys)
+        planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
     cfg = task_config(task_name, batch, {"planar_adjoint": False})
     trained_fwd = jax.vmap(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
     brax_fwd = jax.vmap(inner.pipeline_step)
