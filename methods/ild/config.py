@@ -261,8 +261,8 @@ class ILDConfig:
     the links, what a link reads of another through products with constant one-hot
     matrices) instead of one scalar per link and entry (`tasks.planar_spring`). The same
     rollout and gradient to float32 round-off (tests/test_planar_links.py); the update
-    1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class; `PLANAR_LINKS_TASKS` turn it on. Needs
-    `planar_adjoint`; positional tasks refuse it."""
+    1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class;
+    `PLANAR_LINKS_TASKS` turn it on. Needs `planar_adjoint`; positional tasks refuse it."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
