@@ -445,7 +445,7 @@ def _step_with_adjoint(forward, fields: tuple[str, str], closed_form, read_cotan
     return lambda ps, action: step(getattr(ps, a), getattr(ps, b), action, ps)
 
 
-def planar_adjoint_refusal(task: Task) -> str | None:
+def planar_adjoint_refusal(task: Task, drop_normal_gravity: bool = False) -> str | None:
     """Why `with_planar_adjoint` cannot differentiate `task` (None where it can): it is for
     brax's positional step of a scene that moves in the x-z plane
     (`tasks.planar.planar_refusal`) and brax's spring step of one
@@ -459,14 +459,16 @@ def planar_adjoint_refusal(task: Task) -> str | None:
         from tasks.planar import planar_refusal as refusal
     else:
         from tasks.planar_spring import spring_refusal as refusal
-    why = refusal(task.env.unwrapped.sys)
+    sys = task.env.unwrapped.sys
+    why = refusal(sys, drop_normal_gravity) if backend == "positional" else refusal(sys)
     if why is not None:
-        return (f"task {task.name!r}: {why}; planar_adjoint models a scene that moves in the "
-                "x-z plane: leave it False")
+        return (f"task {task.name!r}: {why}; planar_adjoint models a scene that moves in one "
+                "plane: leave it False")
     return None
 
 
-def with_planar_adjoint(task: Task, links: bool = False) -> Task:
+def with_planar_adjoint(task: Task, links: bool = False,
+                        drop_normal_gravity: bool = False) -> Task:
     """A fresh copy of brax positional or spring task `task` whose control step runs
     `task`'s own (brax's, or a `with_lean_substeps` / `with_positional_joints` /
     `with_hand_adjoint` copy's: the same values) and, in reverse mode, the VJP of
@@ -482,9 +484,13 @@ def with_planar_adjoint(task: Task, links: bool = False) -> Task:
     the forward stores), as `with_substep_remat` recomputes brax's substeps. `links`: the
     spring step with every link at once (`tasks.planar_links.control_step`: the same values,
     its VJP faster). Errors for a task it does not fit (`planar_adjoint_refusal`)."""
-    why = planar_adjoint_refusal(task)
+    why = planar_adjoint_refusal(task, drop_normal_gravity)
     if why is not None:
         raise ValueError(why)
+    if drop_normal_gravity and task.spec.backend != "positional":
+        raise ValueError(f"task {task.name!r} runs {task.spec.backend!r} physics; "
+                         "planar_normal_gravity is for brax's positional step (reacher): "
+                         "leave it False")
     if links and task.spec.backend != "spring":
         raise ValueError(f"task {task.name!r} runs {task.spec.backend!r} physics; "
                          "planar_links writes brax's spring step over the links (hopper, "
@@ -494,7 +500,7 @@ def with_planar_adjoint(task: Task, links: bool = False) -> Task:
     inner, given = env.unwrapped, task.env.unwrapped
     inner.sys, n_frames = given.sys, inner._n_frames
     if task.spec.backend == "positional":
-        scene = planar_scene(given.sys)
+        scene = planar_scene(given.sys, drop_normal_gravity)
         closed_form = lambda *a: control_step(scene, *a, n_frames)  # noqa: E731
     else:
         from tasks.planar_spring import control_step as spring_step, spring_scene

@@ -1,6 +1,8 @@
 """brax's positional control step for a scene that moves in one plane, written as the scene
-needs it: inverted_pendulum's. ILD differentiates it in place of brax's step
-(`planar_adjoint`, `tasks.core.with_planar_adjoint`).
+needs it: inverted_pendulum's, and reacher's without its gravity along its hinges
+(`planar_scene(drop_normal_gravity=True)`, in axes turned so that its plane is the model's
+x-z, session 71). ILD differentiates it in place of brax's step (`planar_adjoint`,
+`tasks.core.with_planar_adjoint`).
 
 A scene whose links all move in the x-z plane (slides along in-plane axes, hinges about y,
 gravity in the plane, no contacts, every constant transform a turn about y) keeps every
@@ -21,7 +23,9 @@ zero. The in-plane values are brax's to float32 round-off (tests/test_planar.py:
 within 1.5e-8, velocities within 3.3e-6 over a control step). At B = 32 one control step
 costs 0.115 ms forward against brax's 0.600 ms, and 0.92 ms as its value and VJP against
 brax's 4.54 ms, each about 8x its own forward (`python results/planar/scripts/step_cost.py`,
-session 66: results/planar/step_cost_session66.txt).
+session 66: results/planar/step_cost_session66.txt); since session 72's `_through_arrays`
+its value and VJP cost 0.56 ms against brax's 4.48 ms on inverted_pendulum and 1.13 ms
+against 7.62 ms on reacher (results/planar_reacher/step_cost_session72_*.txt).
 
 `control_step` is one control step (`n_frames` substeps, the joint coordinates only at the
 end, as `lean_substeps` computes them) as a function of the state's centre-of-mass frames
@@ -188,12 +192,13 @@ class Link:
     """One link's constants, as Python floats (float32 values); vectors and quaternions as
     tuples, their zero entries the exact 0.0 the algebra above folds away."""
     parent: int            # -1: the world
-    dof: int               # its dof's index in q and qd
+    dof: int               # its (first) dof's index in q and qd
     transform: tuple       # (pos, rot), brax's `link.transform` (parent frame to link's)
     joint: tuple           # (pos, rot), `link.joint` (link frame to joint's)
     neg_com: tuple         # -`link.inertia.transform.pos` (com_to_world's offset)
-    inertia_rot: tuple     # `link.inertia.transform.rot`
-    inertia_inv: tuple     # 1 / diag(i) ** (1 - spring_inertia_scale)
+    inertia_rot: tuple     # `link.inertia.transform.rot` (IDENTITY where `inertia_inv` is rows)
+    inertia_inv: tuple     # 1 / diag(i) ** (1 - spring_inertia_scale), or the rows of that
+                           # inverse inertia turned into the link's frame (`_link_frame_inertia`)
     mass_inv: float        # 1 / mass ** (1 - spring_mass_scale)
     ang_damping: float     # `link.constraint_ang_damping`
     vel_damping: float     # `link.constraint_vel_damping`
@@ -205,6 +210,7 @@ class Link:
     slides: tuple          # ((v_k, lo_k, hi_k), ...) the slide axes and their limits
     keep: tuple            # 1 - (any slide along that coordinate)
     frame: tuple           # brax's `link_to_joint_frame` angular axes (joint coordinates)
+    motions: tuple = ()    # every dof's axis, `motion` first (several: a joint of slides)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,14 +223,22 @@ class Scene:
     joint_scale_pos: float
     joint_scale_ang: float
     actuators: tuple       # per actuator: (link of its dof, gear, gain, ctrl lo, hi, force lo, hi)
+    perm: tuple = (0, 1, 2)  # the world axis each of the model's x, y, z is (`_turned`)
 
 
-def planar_scene(sys) -> Scene | str:
+def planar_scene(sys, drop_normal_gravity: bool = False) -> Scene | str:
     """The constants `control_step` reads, or why the scene is not one it models (a string):
-    a tree of links whose joints each have one dof (a hinge or a slide, `joint_rows`' kinds),
-    gravity in the x-z plane, motors (no position or velocity bias), no contacts, no fluid.
-    That a step keeps the scene in the x-z plane is checked by tracing it
-    (`planar_refusal`)."""
+    a tree of links whose joints are hinges (one dof) or slides (one or more dofs, none
+    actuated where more than one), gravity in the plane of motion, motors (no position or
+    velocity bias), no contacts, no fluid. That a step keeps the scene in its plane is
+    checked by tracing it (`planar_refusal`).
+
+    The plane is the one normal to every hinge's axis: x-z (hinges about y, inverted
+    pendulum's) or another, whose constants are then written in turned axes (`_turned`) so
+    that the model's plane is x-z. Gravity along the plane's normal (reacher's, along its
+    hinges) refuses the scene unless `drop_normal_gravity`: then the model leaves it out,
+    as a scene without it (it only presses the links against their joints: in reacher's
+    128-step rollout q moved 3.6e-4 rad without it, session 71)."""
     from brax import contact
     from brax.base import Transform
     from tasks.positional_joints import joint_rows
@@ -233,8 +247,6 @@ def planar_scene(sys) -> Scene | str:
         return "its constants are traced (not known while tracing)"
     if sys.enable_fluid:
         return "it has fluid forces"
-    if any(t != "1" for t in sys.link_types):
-        return "it has a joint with more than one dof"
     rows = joint_rows(sys)
     if isinstance(rows, str):
         return rows
@@ -244,18 +256,30 @@ def planar_scene(sys) -> Scene | str:
     act = sys.actuator
     if np.any(np.asarray(act.bias_q)) or np.any(np.asarray(act.bias_qd)):
         return "it has actuators with a position or velocity bias (servos)"
-    gravity = _const(sys.gravity)
-    if gravity[1] != 0.0:
-        return "its gravity is not in the x-z plane"
     motion_ang, motion_vel = np.asarray(sys.dof.motion.ang), np.asarray(sys.dof.motion.vel)
+    dof_link = np.asarray(sys.dof_link())
+    actuated = set(dof_link[np.asarray(act.qd_id)].tolist())
+    for i in range(num):
+        dofs = np.flatnonzero(dof_link == i)
+        if len(dofs) > 1 and (np.any(motion_ang[dofs]) or i in actuated):
+            return ("it has a joint with more than one dof that turns or is actuated (this "
+                    "models those of slides alone, unactuated)")
+    perm = _plane_axes(motion_ang[np.any(motion_ang, axis=1)])
+    if isinstance(perm, str):
+        return perm
+    gravity = tuple(_const(sys.gravity)[k] for k in perm)
+    if gravity[1] != 0.0:
+        if not drop_normal_gravity:
+            return "its gravity is not in the plane its hinges turn in"
+        gravity = (gravity[0], 0.0, gravity[2])
     msc, isc = float(sys.spring_mass_scale), float(sys.spring_inertia_scale)
     mass = np.asarray(sys.link.inertia.mass, np.float32) ** np.float32(1 - msc)
     i_diag = (np.diagonal(np.asarray(sys.link.inertia.i, np.float32), axis1=1, axis2=2)
               ** np.float32(1 - isc))
-    dof_link = np.asarray(sys.dof_link())
     links = []
     for i in range(num):
-        d = int(np.flatnonzero(dof_link == i)[0])
+        dofs = np.flatnonzero(dof_link == i)
+        d = int(dofs[0])
         hinge = bool(np.any(motion_ang[d]))
         frame = kinematics.link_to_joint_frame(
             jax.tree.map(lambda a: a[d:d + 1], sys.dof.motion))[0].ang
@@ -275,7 +299,9 @@ def planar_scene(sys) -> Scene | str:
             hinge=hinge, motion=_const(motion_ang[d] if hinge else motion_vel[d]),
             axes=tuple(_const(a) for a in rows.axes[i]),
             lo0=_f32(rows.lo0[i]), hi0=_f32(rows.hi0[i]), slides=slides,
-            keep=_const(rows.keep[i]), frame=tuple(_const(a) for a in np.asarray(frame))))
+            keep=_const(rows.keep[i]), frame=tuple(_const(a) for a in np.asarray(frame)),
+            motions=tuple(_const(motion_ang[e] if hinge else motion_vel[e]) for e in dofs)))
+    links = [_turned(ln, perm) for ln in links]
     dt = _f32(sys.opt.timestep)
     damp = lambda d: _f32(np.exp(np.float32(d) * np.float32(dt)))  # noqa: E731
     actuators = tuple(
@@ -285,7 +311,56 @@ def planar_scene(sys) -> Scene | str:
                                     np.asarray(act.force_range)))
     return Scene(links=tuple(links), gravity=gravity, dt=dt, vel_damp=damp(sys.vel_damping),
                  ang_damp=damp(sys.ang_damping), joint_scale_pos=_f32(sys.joint_scale_pos),
-                 joint_scale_ang=_f32(sys.joint_scale_ang), actuators=actuators)
+                 joint_scale_ang=_f32(sys.joint_scale_ang), actuators=actuators, perm=perm)
+
+
+def _plane_axes(hinge_axes) -> tuple | str:
+    """The world axes the model's x, y, z are, so that every hinge turns about the model's y:
+    (0, 1, 2) for hinges about y (and a scene with none), a turn of the axes, (1, 2, 0), for
+    hinges about z (the model's y is the world's z) and (2, 0, 1) for hinges about x."""
+    if len(hinge_axes) == 0:
+        return (0, 1, 2)
+    for normal, perm in ((1, (0, 1, 2)), (2, (1, 2, 0)), (0, (2, 0, 1))):
+        if np.all(np.delete(hinge_axes, normal, axis=1) == 0):
+            return perm
+    return "its hinges do not all turn about one of the world's axes"
+
+
+def _turned(ln: Link, perm: tuple) -> Link:
+    """Link `ln`'s constants written in the axes `perm` (a cyclic turn of x, y, z, so cross
+    products and the quaternions' vector parts turn with the vectors), its inverse inertia
+    turned into its frame where its inertia's frame is not a turn about the model's y, and
+    a root's offset from the world along the plane's normal dropped (a translation along
+    the normal: the model reads the state's positions in the plane, and nothing it models
+    acts along the normal)."""
+    v = lambda u: tuple(u[k] for k in perm)  # noqa: E731
+    q = lambda u: (u[0], *v(u[1:]))  # noqa: E731
+    pos = v(ln.transform[0])
+    if ln.parent < 0:
+        pos = (pos[0], 0.0, pos[2])
+    inertia_rot, inertia_inv = q(ln.inertia_rot), v(ln.inertia_inv)
+    if inertia_rot[1] != 0.0 or inertia_rot[3] != 0.0:
+        inertia_rot, inertia_inv = IDENTITY, _link_frame_inertia(inertia_rot, inertia_inv)
+    return dataclasses.replace(
+        ln, transform=(pos, q(ln.transform[1])), joint=(v(ln.joint[0]), q(ln.joint[1])),
+        neg_com=v(ln.neg_com), inertia_rot=inertia_rot, inertia_inv=inertia_inv,
+        motion=v(ln.motion), axes=tuple(v(a) for a in ln.axes),
+        slides=tuple((v(u), lo, hi) for u, lo, hi in ln.slides), keep=v(ln.keep),
+        frame=tuple(v(a) for a in ln.frame), motions=tuple(v(m) for m in ln.motions))
+
+
+def _link_frame_inertia(rot: tuple, diag: tuple) -> tuple:
+    """The rows of R diag R^T (R the turn `rot`) as float32 Python floats, its entries under
+    1e-6 of the largest the static 0.0: for an inertia whose principal axes lie along the
+    link's (reacher's capsules, turned 90 and 120 degrees onto x), the off-axis entries are
+    round-off of the float32 quaternion, exactly zero in the scene."""
+    w, x, y, z = (float(a) for a in rot)
+    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    m = r @ np.diag(np.asarray(diag, np.float64)) @ r.T
+    m[np.abs(m) < 1e-6 * np.abs(m).max()] = 0.0
+    return tuple(tuple(_f32(a) for a in row) for row in m)
 
 
 # ----------------------------------------------------------------------------------------
@@ -343,8 +418,9 @@ def world_to_joint(sc: Scene, x, xd):
 def inv_inertia(ln: Link, rot):
     """brax.com.inv_inertia of one link (rows of the 3 x 3 matrix)."""
     ri = quat_mul(rot, ln.inertia_rot)
-    eye = ((ln.inertia_inv[0], 0.0, 0.0), (0.0, ln.inertia_inv[1], 0.0),
-           (0.0, 0.0, ln.inertia_inv[2]))
+    eye = ln.inertia_inv
+    if not isinstance(eye[0], tuple):   # the diagonal
+        eye = ((eye[0], 0.0, 0.0), (0.0, eye[1], 0.0), (0.0, 0.0, eye[2]))
     rows = [rotate(r, ri) for r in eye]
     return tuple(rotate(tuple(r[k] for r in rows), ri) for k in range(3))
 
@@ -506,8 +582,8 @@ def joint_coordinates(sc: Scene, jw):
             q.append(jnp.arctan2(dot(cross(f1, nodes), f0), dot(f1, nodes)))
             qd.append(dot(c0, ang))
         else:
-            q.append(dot(ln.motion, j[0]))
-            qd.append(dot(ln.motion, jd[0]))
+            q.extend(dot(m, j[0]) for m in ln.motions)
+            qd.extend(dot(m, jd[0]) for m in ln.motions)
     return q, qd
 
 
@@ -520,6 +596,22 @@ def joint_torques(sc: Scene, act):
     return tau
 
 
+def _through_arrays(x_i, xd_i):
+    """The frames `integrate` returns, stacked into arrays and read back: the same values.
+    In reverse mode this keeps XLA's CPU backend from fusing position_update's scalar VJP
+    graph into the loops that pad the input arrays' cotangents, where it evaluated that graph
+    for every array element and, across the pads' branches, again for each entry: on reacher
+    one such loop, the input quaternions' cotangent, took 6.0 of a substep VJP's 8.3 ms
+    (session 72, B = 32; inverted_pendulum 0.40 of 0.67 ms). Read back from arrays, its
+    cotangent is padded once here, after position_update's VJP, and integrate's VJP reads
+    it: one control step's value and VJP ran 23x faster on reacher (14.8 -> 0.64 ms) and
+    1.55x on inverted_pendulum (0.79 -> 0.51 ms), the same to float32 round-off."""
+    dtype = jnp.result_type(*(a for t in x_i for a in t[0] + t[1] if not isinstance(a, float)))
+    arrays = (_array([t[0] for t in x_i], dtype), _array([t[1] for t in x_i], dtype),
+              _array([m[0] for m in xd_i], dtype), _array([m[1] for m in xd_i], dtype))
+    return _tuples(*arrays)
+
+
 def substep(sc: Scene, x_i, xd_i, tau):
     """brax.positional.pipeline.step without contacts, from the centre-of-mass frames (the
     state's link and joint frames are computed from them, as brax's previous substep or
@@ -530,7 +622,7 @@ def substep(sc: Scene, x_i, xd_i, tau):
     xdd = [(vadd(sc.gravity, vscale(ln.mass_inv, f[1])), matvec(inv_inertia(ln, xl[1]), f[0]))
            for ln, f, xl in zip(sc.links, forces, x)]
     x_i_prev = x_i
-    x_i, xd_i = integrate(sc, x_i, xd_i, xdd)
+    x_i, xd_i = _through_arrays(*integrate(sc, x_i, xd_i, xdd))
     x, xd = to_world(sc, x_i, xd_i)
     x_i = position_update(sc, x_i, x, xd)
     xd_i = project_xd(sc, x_i, x_i_prev)
@@ -637,22 +729,35 @@ def control_step(sc: Scene, x_i, xd_i, act: jax.Array, n_frames: int):
     The substeps are unrolled, each from and to arrays: as a scan, XLA's CPU runtime ran
     the step's VJP 2.6x slower at B = 32 (1.68 ms against 0.64 ms; the forward 0.08 ms
     either way), and as one graph of scalars from input to output (no arrays between
-    substeps) it compiled ILD's update in 6 minutes instead of one."""
+    substeps) it compiled ILD's update in 6 minutes instead of one. Each substep also passes
+    through arrays after `integrate` (`_through_arrays`)."""
     dtype = x_i.pos.dtype
     tau = joint_torques(sc, act)
-    arrays = (x_i.pos, x_i.rot, xd_i.vel, xd_i.ang)
+    arrays = _in_axes(sc.perm, (x_i.pos, x_i.rot, xd_i.vel, xd_i.ang))
     for _ in range(n_frames):
         xi, xdi = substep(sc, *_tuples(*arrays), tau)
         arrays = (_array([t[0] for t in xi], dtype), _array([t[1] for t in xi], dtype),
                   _array([m[0] for m in xdi], dtype), _array([m[1] for m in xdi], dtype))
     frames, jw = _frames(sc, *_tuples(*arrays))
     q, qd = joint_coordinates(sc, jw)
-    out = tuple((_array([f[0] for f in frames[name]], dtype),
-                 _array([f[1] for f in frames[name]], dtype)) for name in OUTPUTS)
-    order = np.argsort([ln.dof for ln in sc.links])
+    out = tuple(_in_axes(np.argsort(sc.perm), (
+        _array([f[0] for f in frames[name]], dtype), _array([f[1] for f in frames[name]], dtype)))
+        for name in OUTPUTS)
+    order = np.argsort([ln.dof + k for ln in sc.links for k in range(len(ln.motions) or 1)])
     q = jnp.stack([jnp.asarray(q[k], dtype) for k in order])
     qd = jnp.stack([jnp.asarray(qd[k], dtype) for k in order])
     return out, q, qd
+
+
+def _in_axes(perm, arrays: tuple) -> tuple:
+    """Arrays of vectors (last axis 3) and quaternions (4) with their entries in the axes
+    `perm` (`Scene.perm`; the vector part of a quaternion turns as a vector): the arrays
+    themselves for the world's own axes."""
+    perm = tuple(int(k) for k in perm)
+    if perm == (0, 1, 2):
+        return arrays
+    return tuple(a[..., list(perm)] if a.shape[-1] == 3 else a[..., [0, *(1 + k for k in perm)]]
+                 for a in arrays)
 
 
 def cotangent(ct_state):
@@ -664,12 +769,12 @@ def cotangent(ct_state):
     return tuple(pairs), ct_state.q, ct_state.qd
 
 
-def planar_refusal(sys) -> str | None:
+def planar_refusal(sys, drop_normal_gravity: bool = False) -> str | None:
     """Why `control_step` does not model brax's positional step of `sys` (None where it
     does): `planar_scene`'s reasons, or a substep that moves some frame out of the x-z plane
     (an entry `LIVE` leaves out that the traced substep does not keep 0.0: a constant
     transform that turns about another axis, a slide or a force out of the plane)."""
-    sc = planar_scene(sys)
+    sc = planar_scene(sys, drop_normal_gravity)
     if isinstance(sc, str):
         return sc
     return plane_leaks(sys, lambda *a: substep(sc, *a), lambda act: joint_torques(sc, act),

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax import com, kinematics
+from brax.positional import pipeline
 
 import tasks.planar as planar
 from methods.ild.benchmark import speed_setup, task_config
@@ -139,15 +140,16 @@ def test_control_step_vjp_is_braxs():
     assert_same_vjp(brax_fn, ours, args)
 
 
-def assert_same_vjp(want_fn, got_fn, args):
+def assert_same_vjp(want_fn, got_fn, args, in_plane=_in_plane):
     """`got_fn`'s VJP in (x_i, xd_i, action) equals `want_fn`'s within 1e-4 of each leaf's
     largest entry (in-plane entries), for a sine cotangent of the in-plane entries of every
-    output of `got_fn` (a `control_step`)."""
+    output of `got_fn` (a `control_step`); `in_plane(kind, v)` keeps a world-axes array's
+    in-plane entries."""
     _, want_pull = jax.vjp(want_fn, *args)
     got, got_pull = jax.vjp(got_fn, *args)
     leaves = jax.tree.map(lambda v: jnp.sin(7.0 * jnp.arange(v.size, dtype=v.dtype)
                                             ).reshape(v.shape), got)
-    ct = (tuple((_in_plane(k0, a), _in_plane(k1, b)) for name, (a, b) in zip(
+    ct = (tuple((in_plane(k0, a), in_plane(k1, b)) for name, (a, b) in zip(
         planar.OUTPUTS, leaves[0]) for k0, k1 in [
         ("vel", "ang") if name in ("xd", "xd_i", "jd") else ("pos", "rot")]),
         leaves[1], leaves[2])
@@ -156,22 +158,23 @@ def assert_same_vjp(want_fn, got_fn, args):
     for kind, w, g in (("pos", w_xi.pos, g_xi.pos), ("rot", w_xi.rot, g_xi.rot),
                        ("vel", w_xdi.vel, g_xdi.vel), ("ang", w_xdi.ang, g_xdi.ang),
                        ("act", w_a, g_a)):
-        w = w if kind == "act" else _in_plane(kind, w)
+        w = w if kind == "act" else in_plane(kind, w)
         scale = float(jnp.abs(w).max())
         assert scale > 1e-2, kind
         np.testing.assert_allclose(g, w, rtol=0, atol=1e-4 * scale, err_msg=kind)
 
 
-def _rollout_gradients(steps: int, a: dict, b: dict):
-    """ILD's rollout loss and policy gradient on inverted_pendulum, B = 8 over a `steps`-step
-    episode, with the config it trains with (its TASK_OVERRIDES: truncation 128,
-    positional_joints, lean substeps, planar_adjoint) updated by `a` and by `b`."""
-    task = make_task("inverted_pendulum")
+def _rollout_gradients(steps: int, a: dict, b: dict, name: str = "inverted_pendulum"):
+    """ILD's rollout loss and policy gradient on task `name`, B = 8 over a `steps`-step
+    episode, with the config it trains with (its TASK_OVERRIDES; inverted_pendulum's:
+    truncation 128, positional_joints, lean substeps, planar_adjoint) updated by `a` and by
+    `b`."""
+    task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=steps), env=task.env)
     out = []
-    assert task_config("inverted_pendulum", 8, a) != task_config("inverted_pendulum", 8, b)
+    assert task_config(name, 8, a) != task_config(name, 8, b)
     for over in (a, b):
-        cfg = task_config("inverted_pendulum", 8, over)
+        cfg = task_config(name, 8, over)
         policy, goals, norm, params, k = speed_setup(task, cfg)
         loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
         init_keys = jax.random.split(k[2], 8)
@@ -196,6 +199,18 @@ def test_planar_adjoint_is_the_same_rollout_and_gradient():
     _same_gradient(want, got, 1e-5)
 
 
+def test_reacher_planar_adjoint_is_the_same_rollout_and_nearly_its_gradient():
+    """reacher as it trains (planar_adjoint with planar_normal_gravity, truncation 10) against
+    it without planar_adjoint (positional_joints' backward, gravity included), over 16 steps:
+    the same loss bit for bit (brax's step computes the rollout either way) and every
+    gradient leaf within 1e-4 of its largest entry (measured: 1.2e-5, session 72): the
+    gravity along the hinges that the planar backward leaves out moves it less than that."""
+    (want_l, want), (got_l, got) = _rollout_gradients(16, {"planar_adjoint": False}, {},
+                                                      name="reacher")
+    assert float(got_l) == float(want_l)
+    _same_gradient(want, got, 1e-4)
+
+
 @pytest.mark.slow  # two 128-step rollout-gradient compiles: ~1.5 minutes on one core
 def test_planar_adjoint_is_the_same_full_bptt_gradient_where_nothing_clips():
     """Over the whole 128-step episode (inverted_pendulum trains with full BPTT), without
@@ -213,21 +228,29 @@ def test_planar_adjoint_is_the_same_full_bptt_gradient_where_nothing_clips():
 
 def test_planar_adjoint_refuses_what_it_does_not_model():
     """Another backend (acrobot: generalized; pointmass; the spring scenes:
-    tests/test_planar_spring.py), a positional scene with a two-dof joint (reacher's
-    target), gravity out of the plane or a motor that pushes the cart along y
-    (inverted_pendulum's constants changed): a ValueError naming the task, the reason and
-    the field; with closed_form_adjoint or small_dots the config refuses the pair; beside
-    lean_substeps and positional_joints (the forward it runs) it builds."""
+    tests/test_planar_spring.py), a positional scene with gravity along its hinges
+    (reacher's, unless dropped by `planar_normal_gravity`), gravity out of the plane or a
+    motor that pushes the cart along y (inverted_pendulum's constants changed): a
+    ValueError naming the task, the reason and the field; with closed_form_adjoint or
+    small_dots the config refuses the pair; beside lean_substeps and positional_joints (the
+    forward it runs) it builds."""
     for name in ("acrobot", "pointmass"):
         with pytest.raises(ValueError, match=f"{name}.*planar_adjoint.*leave it False"):
             with_planar_adjoint(make_task(name))
-    with pytest.raises(ValueError, match="'reacher': it has a joint with more than one dof"):
+    with pytest.raises(ValueError, match="'reacher': its gravity is not in the plane its "
+                                         "hinges turn in"):
         with_planar_adjoint(make_task("reacher"))
+    with pytest.raises(ValueError, match="'hopper' runs 'spring' physics; planar_normal_grav"):
+        with_planar_adjoint(make_task("hopper"), drop_normal_gravity=True)
+    with pytest.raises(ValueError, match="set planar_adjoint True or planar_normal_gravity"):
+        ILDConfig(planar_normal_gravity=True)
     task = make_task("inverted_pendulum")
     assert planar_adjoint_refusal(task) is None
     sys = task.env.unwrapped.sys
     assert planar.planar_scene(sys.replace(gravity=jnp.array([0.0, -9.81, 0.0]))) == (
-        "its gravity is not in the x-z plane")
+        "its gravity is not in the plane its hinges turn in")
+    assert planar.planar_scene(sys.replace(gravity=jnp.array([0.0, -9.81, 0.0])),
+                               drop_normal_gravity=True).gravity == (0.0, 0.0, 0.0)
     motion = sys.dof.motion.replace(vel=sys.dof.motion.vel.at[0].set(jnp.array([0.0, 1, 0])))
     why = planar.planar_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
     assert why.startswith("a substep moves it out of the x-z plane (link 0's"), why
@@ -235,6 +258,120 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
         with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
             ILDConfig(planar_adjoint=True, **{other: True})
     ILDConfig(planar_adjoint=True, lean_substeps=True, positional_joints=True)
+
+
+def test_link_frame_inertia_by_hand():
+    """A turn of 90 degrees about y (float32 sqrt(1/2)) carries diag(1, 2, 3) to diag(3, 2,
+    1); the off-axis round-off of the quaternion (~1e-7) becomes the static 0.0."""
+    h = planar._f32(np.sqrt(0.5))
+    rows = planar._link_frame_inertia((h, 0.0, h, 0.0), (1.0, 2.0, 3.0))
+    np.testing.assert_allclose(np.array(rows), np.diag([3.0, 2.0, 1.0]), rtol=1e-6, atol=0)
+    assert all(rows[i][j] == 0.0 and isinstance(rows[i][j], float)
+               for i in range(3) for j in range(3) if i != j)
+
+
+def test_planar_scene_reads_reacher_in_turned_axes():
+    """reacher's hinges turn about z: the model's axes are (y, z, x) of the world's (its y
+    the world's z), its gravity (along z) refused or dropped, its roots' height 0.01 above
+    the world dropped, the target's two slides read as one link of two dofs (q entries 2
+    and 3), and the capsules' inverse inertia as link-frame rows."""
+    sys = make_task("reacher").env.unwrapped.sys
+    assert planar.planar_scene(sys) == "its gravity is not in the plane its hinges turn in"
+    sc = planar.planar_scene(sys, drop_normal_gravity=True)
+    assert sc.perm == (1, 2, 0) and sc.gravity == (0.0, 0.0, 0.0)
+    arm0, arm1, target = sc.links
+    assert arm0.motion == arm1.motion == (0.0, 1.0, 0.0)   # the world's z
+    assert arm0.transform[0] == (0.0, 0.0, 0.0)             # the world's (0, 0, 0.01)
+    assert arm1.transform[0] == (0.0, 0.0, planar._f32(0.1))  # the world's (0.1, 0, 0)
+    assert (target.dof, target.motions) == (2, ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0)))
+    assert arm0.inertia_rot == planar.IDENTITY and isinstance(arm0.inertia_inv[0], tuple)
+    assert planar.planar_refusal(sys, drop_normal_gravity=True) is None
+
+
+def _reacher_steps(gravity: bool):
+    """(brax's, ours, args, state): one control step of 8 reacher envs 10 steps after reset as
+    functions of (x_i, xd_i, action), brax's with the world's gravity or none; the frames
+    put back on the plane (z = 0.01, turns about z) for the gravity-free comparison."""
+    task = make_task("reacher")
+    env = task.env.unwrapped
+    s = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
+    act = 0.5 * jnp.sin(jnp.arange(16, dtype=jnp.float32)).reshape(8, 2)
+    step = jax.jit(jax.vmap(task.env.step))
+    for _ in range(10):
+        s = step(s, act)
+    ps = s.pipeline_state
+    sc, n = planar.planar_scene(env.sys, drop_normal_gravity=True), env._n_frames
+    ours = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
+    sys = env.sys if gravity else env.sys.replace(gravity=jnp.zeros(3))
+
+    def brax_fn(xi, xdi, a):
+        def one(p_, xi_, xdi_, a_):
+            p_ = _consistent(sys, p_, xi_, xdi_)
+            for _ in range(n):
+                p_ = pipeline.step(sys, p_, a_)
+            return p_
+        return planar.cotangent(jax.vmap(one)(ps, xi, xdi, a))
+
+    x_i, xd_i = ps.x_i, ps.xd_i
+    if not gravity:
+        rot = x_i.rot * jnp.array([1.0, 0.0, 0.0, 1.0])
+        x_i = x_i.replace(pos=x_i.pos.at[..., 2].set(0.01),
+                          rot=rot / jnp.linalg.norm(rot, axis=-1, keepdims=True))
+        xd_i = xd_i.replace(vel=xd_i.vel.at[..., 2].set(0.0),
+                            ang=xd_i.ang * jnp.array([0.0, 0.0, 1.0]))
+    return brax_fn, ours, (x_i, xd_i, act), ps
+
+
+REACHER_LIVE = {"pos": [0, 1], "rot": [0, 3], "vel": [0, 1], "ang": [2]}
+"""reacher's in-plane entries in the world's axes (the plane x-y, turns about z)."""
+
+
+def _in_reacher_plane(kind, v):
+    mask = np.zeros(v.shape[-1], np.float32)
+    mask[REACHER_LIVE[kind]] = 1.0
+    return v * mask
+
+
+@pytest.mark.slow  # brax's control step compiled: ~1 minute (the default run checks reacher's
+# planar form through ILD's 16-step gradient, test_reacher_planar_adjoint_is_the_same_...)
+def test_reacher_control_step_is_braxs_step_without_gravity():
+    """From frames on the plane, every in-plane entry of every frame and the joint
+    coordinates of brax's positional step of reacher without gravity, to float32 round-off
+    (measured: positions 6e-8, velocities 9e-6, q 1.2e-7, qd 8.6e-6): the turned axes, the
+    target's two slides and the link-frame inertia are brax's scene."""
+    brax_fn, ours, args, _ = _reacher_steps(gravity=False)
+    want, got = jax.jit(brax_fn)(*args), jax.jit(ours)(*args)
+    for name, w, g in zip(planar.OUTPUTS, want[0], got[0]):
+        kinds = ("vel", "ang") if name in ("xd", "xd_i", "jd") else ("pos", "rot")
+        for kind, wk, gk in zip(kinds, w, g):
+            tol = 2e-5 if kind in ("vel", "ang") else 2e-7
+            np.testing.assert_allclose(_in_reacher_plane(kind, gk), _in_reacher_plane(
+                kind, wk), rtol=0, atol=tol, err_msg=f"{name}.{kind}")
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=5e-7)
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=2e-5)
+    assert float(jnp.abs(got[2][:, :2]).max()) > 0.1  # the arm moves
+
+
+@pytest.mark.slow  # the trained step's VJP and the planar one compiled: ~3 minutes
+def test_reacher_planar_vjp_is_the_trained_steps_with_gravity():
+    """At reacher's rollout states (sagged ~2 mm under gravity along its hinges), the planar
+    VJP without gravity against the trained step's with it, for a sine cotangent of the
+    in-plane entries: within 1e-4 of each leaf's largest entry (measured 6.3e-5, session
+    71): the gravity planar_normal_gravity leaves out moves the gradient less than that."""
+    _, ours, args, ps = _reacher_steps(gravity=True)
+    task = make_task("reacher")
+    env = task.env.unwrapped
+    # the step reacher trained with before session 72: positional_joints' backward, gravity in
+    cfg = task_config("reacher", 8, {"planar_adjoint": False})
+    assert not cfg.planar_normal_gravity and cfg.positional_joints
+    trained_step = rollout_physics(task, cfg).env.unwrapped.pipeline_step
+
+    def trained(xi, xdi, a):
+        def one(p_, xi_, xdi_, a_):
+            return trained_step(_consistent(env.sys, p_, xi_, xdi_), a_)
+        return planar.cotangent(jax.vmap(one)(ps, xi, xdi, a))
+
+    assert_same_vjp(trained, ours, args, in_plane=_in_reacher_plane)
 
 
 @pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
@@ -255,21 +392,32 @@ def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
     """Since session 66 ILD trains with `planar_adjoint` on every task whose scene the planar
     form models and on no other: TASK_OVERRIDES turns it on exactly where
     `planar_adjoint_refusal` has no objection (inverted_pendulum; hopper and walker2d since
-    session 69), merged with that task's other overrides; `--set planar_adjoint=false`
-    turns it off alone."""
+    session 69; reacher since session 72, with `planar_normal_gravity`, on exactly where
+    the scene needs it to be allowed), merged with that task's other overrides; `--set
+    planar_adjoint=false` turns it off alone (and planar_normal_gravity with it)."""
     from bench.plugins import build_config, get_method
-    from methods.ild.config import PLANAR_ADJOINT_TASKS, TASK_OVERRIDES
+    from methods.ild.config import (PLANAR_ADJOINT_TASKS, PLANAR_NORMAL_GRAVITY_TASKS,
+                                    TASK_OVERRIDES)
     from tasks.registry import TASKS
     on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_adjoint")}
-    allowed = {name for name in TASKS if planar_adjoint_refusal(make_task(name)) is None}
+    allowed = {name for name in TASKS
+               if planar_adjoint_refusal(make_task(name), drop_normal_gravity=True) is None}
     assert set(PLANAR_ADJOINT_TASKS) == on == allowed == {"inverted_pendulum", "hopper",
-                                                          "walker2d"}
+                                                          "walker2d", "reacher"}
+    gravity = {name for name, over in TASK_OVERRIDES.items()
+               if over.get("planar_normal_gravity")}
+    needs = {name for name in allowed if planar_adjoint_refusal(make_task(name)) is not None}
+    assert set(PLANAR_NORMAL_GRAVITY_TASKS) == gravity == needs == {"reacher"}
     ild = get_method("ild")
     ip = build_config(ild, "inverted_pendulum", "cpu", {})
     assert ip.planar_adjoint and ip.positional_joints and ip.lean_substeps
     assert ip.truncation == 128
     off = build_config(ild, "inverted_pendulum", "cpu", {"planar_adjoint": "false"})
     assert off == dataclasses.replace(ip, planar_adjoint=False)
-    assert not build_config(ild, "reacher", "cpu", {}).planar_adjoint
+    reacher = build_config(ild, "reacher", "cpu", {})
+    assert reacher.planar_adjoint and reacher.planar_normal_gravity
+    assert reacher.positional_joints and reacher.lean_substeps
+    assert build_config(ild, "reacher", "cpu", {"planar_adjoint": "false"}) == (
+        dataclasses.replace(reacher, planar_adjoint=False, planar_normal_gravity=False))
     hopper = build_config(ild, "hopper", "cpu", {})
     assert hopper.planar_adjoint and hopper.hand_adjoint and hopper.lean_substeps

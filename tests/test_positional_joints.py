@@ -122,14 +122,16 @@ def test_positional_step_is_braxs_step_and_action_gradient(name):
 @pytest.mark.parametrize("name", ["reacher", "inverted_pendulum"])
 def test_positional_joints_is_the_same_rollout_gradient(name):
     """ILD's rollout loss and policy gradient, B = 8 over a 16-step episode with the config
-    the task trains with (its TASK_OVERRIDES), with and without `positional_joints`: the
-    loss to rtol 1e-5 and every gradient leaf within 1e-4 of its largest entry."""
+    the task trains with (its TASK_OVERRIDES) but `planar_adjoint` (whose backward would
+    stand in for both), with and without `positional_joints`: the loss to rtol 1e-5 and
+    every gradient leaf within 1e-4 of its largest entry."""
     from methods.ild.benchmark import speed_setup, task_config
     task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
     out = {}
     for on in (False, True):
-        cfg = task_config(name, 8, {"positional_joints": on})
+        cfg = task_config(name, 8, {"positional_joints": on, "planar_adjoint": False})
+        assert not cfg.planar_adjoint and cfg.positional_joints is on
         policy, goals, norm, params, k = speed_setup(task, cfg)
         loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
         init_keys = jax.random.split(k[2], 8)

@@ -17,7 +17,7 @@ METHOD = MethodSpec(
     # hand_adjoint off (--set hand_adjoint=false) takes their task overrides with it; so does
     # turning planar_adjoint off take planar_links (its form over all links)
     requires={**{f: "hand_adjoint" for f in HAND_ADJOINT_PIECES},
-              "planar_links": "planar_adjoint"},
+              "planar_links": "planar_adjoint", "planar_normal_gravity": "planar_adjoint"},
     version="5",  # 3: mask_after_done option; 4: observation normalizer frozen;
     # 5: substep_remat on by default (ant's remat override dropped)
 )

@@ -244,8 +244,9 @@ class ILDConfig:
     10-minute ILD cells re-run with it). Tasks on other backends, or with other joints,
     refuse it."""
     planar_adjoint: bool = False
-    """For a scene that moves in the x-z plane, on brax's positional backend
-    (inverted_pendulum) or its spring backend (hopper, walker2d): the training rollouts'
+    """For a scene that moves in one plane, on brax's positional backend
+    (inverted_pendulum; reacher, with `planar_normal_gravity`) or its spring backend
+    (hopper, walker2d): the training rollouts'
     control step runs the task's own physics (with `lean_substeps`, `positional_joints`
     and `hand_adjoint` as set; `substep_remat` has nothing left to act on) and, in reverse
     mode, the VJP of brax's step written over the plane (`tasks.planar.control_step`,
@@ -253,8 +254,9 @@ class ILDConfig:
     reverse mode through every out-of-plane entry brax computes. The same rollout, and the
     same gradient to float32 round-off where the per-step normalization clips nothing
     (tests/test_planar.py, tests/test_planar_spring.py). Tasks whose scene leaves the plane
-    (reacher: a two-dof joint, and gravity along its hinges; ant, humanoid) or other
-    backends refuse it. Off in the class; `PLANAR_ADJOINT_TASKS` turn it on."""
+    (ant, humanoid; reacher, whose gravity is along its hinges, unless
+    `planar_normal_gravity`) or other backends refuse it. Off in the class;
+    `PLANAR_ADJOINT_TASKS` turn it on."""
     planar_links: bool = False
     """With `planar_adjoint` on the spring backend (hopper, walker2d): its planar step written
     with every link at once (`tasks.planar_links.control_step`: each entry an array over
@@ -263,6 +265,16 @@ class ILDConfig:
     rollout and gradient to float32 round-off (tests/test_planar_links.py); the update
     1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class;
     `PLANAR_LINKS_TASKS` turn it on. Needs `planar_adjoint`; positional tasks refuse it."""
+    planar_normal_gravity: bool = False
+    """With `planar_adjoint` on the positional backend: a scene whose gravity is along the
+    normal of the plane its hinges turn in (reacher's, along its hinges) is differentiated
+    as that scene without gravity (`tasks.planar.planar_scene(drop_normal_gravity=True)`;
+    the rollout keeps brax's gravity). Without it planar_adjoint refuses such a scene. The
+    VJP at reacher's rollout states is within 6e-5 of each leaf's largest entry of the
+    trained step's (session 71). Off in the class; `PLANAR_NORMAL_GRAVITY_TASKS` (reacher)
+    turn it on: its update 1.72x faster, update / forward 3.55x -> 2.00x (session 72; in
+    session 71, before `tasks.planar._through_arrays`, it was 5.4x slower). Needs
+    `planar_adjoint`."""
     chunk: int = 1
     """Updates per jitted call between reports and budget checks (1: metrics every update).
     K > 1 pays XLA's per-call costs once per K updates (1.10-1.43x faster per update without
@@ -306,6 +318,9 @@ class ILDConfig:
             (self.planar_adjoint or not self.planar_links,
              "planar_links writes planar_adjoint's spring step over the links; set "
              "planar_adjoint True or planar_links False"),
+            (self.planar_adjoint or not self.planar_normal_gravity,
+             "planar_normal_gravity says how planar_adjoint models gravity off the plane; "
+             "set planar_adjoint True or planar_normal_gravity False"),
             (not (self.closed_form_adjoint and self.hand_adjoint),
              "closed_form_adjoint and hand_adjoint both rewrite the physics step's backward; "
              "set one of them False"),
@@ -457,8 +472,16 @@ _merge_overrides(POSITIONAL_JOINTS_TASKS, positional_joints=True)
 # than padded (`tasks.planar._rows`), paired against the same update with hand_adjoint's
 # backward (results/planar_spring/paired_session69_*.csv), hopper's update 1.45x faster,
 # update / forward 3.25x -> 2.18x. Their 3- and 10-minute ILD cells were recorded before it.
-PLANAR_ADJOINT_TASKS = ("inverted_pendulum", "hopper", "walker2d")
+# Session 72 added reacher, whose gravity runs along its hinges: its planar form leaves that
+# gravity out (`planar_normal_gravity`; the rollout keeps it), its VJP within 6.3e-5 of each
+# leaf's largest entry of the trained step's at the rollout's states (session 71), and since
+# `tasks.planar._through_arrays` (session 72) its update 1.72x faster, paired against
+# positional_joints' backward (results/planar_reacher/paired_session72_reacher.csv), update
+# / forward 3.55x -> 2.00x.
+PLANAR_ADJOINT_TASKS = ("inverted_pendulum", "hopper", "walker2d", "reacher")
 _merge_overrides(PLANAR_ADJOINT_TASKS, planar_adjoint=True)
+PLANAR_NORMAL_GRAVITY_TASKS = ("reacher",)
+_merge_overrides(PLANAR_NORMAL_GRAVITY_TASKS, planar_normal_gravity=True)
 
 # The planar spring step with every link at once (session 70, `tasks.planar_links`): the same
 # rollout, its gradient the same to float32 round-off (tests/test_planar_links.py); one core,

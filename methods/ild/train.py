@@ -327,7 +327,8 @@ def rollout_physics(task, config: ILDConfig):
     if config.small_dots:
         task = with_small_dots(task)
     if config.planar_adjoint:  # the forward built above, differentiated through the plane
-        task = with_planar_adjoint(task, links=config.planar_links)
+        task = with_planar_adjoint(task, links=config.planar_links,
+                                   drop_normal_gravity=config.planar_normal_gravity)
     return task
 
 

@@ -1,4 +1,5 @@
-"""Where reacher's planar VJP goes (session 71; needs planar_reacher_session71.patch applied).
+"""Where reacher's planar VJP goes (session 71, run with its patch applied; the patch is part
+of tasks/planar.py since session 72).
 
 One substep of `tasks.planar` (B = 32, 10 control steps after reset, one core), each piece's
 value and VJP jitted alone, median ms over 5 rounds of 200 calls:
@@ -9,7 +10,9 @@ value and VJP jitted alone, median ms over 5 rounds of 200 calls:
 reacher's arm (its two hinges; the target left out) against inverted_pendulum's cart and pole
 (session 71, a first version of this script): position_update alone 0.22 / 0.12 ms,
 integrate then position_update 8.0 / 0.45 ms, the whole substep 13.2 / 0.74 ms. This script
-on reacher, core 1 idle: 0.37, 9.22 and 13.06 ms.
+on reacher, core 1 idle: 0.37, 9.22 and 13.06 ms. Since session 72 `tasks.planar.substep`
+passes integrate's frames through arrays (`_through_arrays`): the substep row runs that, the
+integrate_then_position_update row still does not (its cost is the pathology that fixes).
 """
 import dataclasses
 import statistics

@@ -12,7 +12,8 @@ by round):
 - trained_forward: the step ILD's training rollouts run without `planar_adjoint` (the
   task's config otherwise: `lean_substeps`, `positional_joints` or `hand_adjoint` and its
   pieces, substep remat), which is also the forward `planar_adjoint` keeps;
-- planar_forward: `control_step`;
+- planar_forward: `control_step` (reacher's without its gravity along its hinges, as
+  `planar_normal_gravity` differentiates it, session 72);
 - brax_vjp, trained_vjp: the step's value and its VJP in the whole state and the action,
   for a cotangent equal to the output (XLA's reverse mode; trained_vjp with the config's
   hand-written VJPs and rematerialized substeps);
@@ -61,7 +62,9 @@ def rows(task_name: str, batch: int):
         links_fwd = jax.vmap(lambda xi, xdi, a: planar_links.control_step(
             ls, inner.sys, xi, xdi, a, n))
     else:
-        sc = planar.planar_scene(inner.sys)
+        # reacher's gravity along its hinges left out, as planar_normal_gravity does
+        # (inverted_pendulum's, in its plane, is kept either way)
+        sc = planar.planar_scene(inner.sys, drop_normal_gravity=True)
         planar_fwd = jax.vmap(lambda xi, xdi, a: planar.control_step(sc, xi, xdi, a, n))
     cfg = task_config(task_name, batch, {"planar_adjoint": False})
     trained_fwd = jax.vmap(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
