@@ -599,10 +599,10 @@ def joint_torques(sc: Scene, act):
 def _through_arrays(x_i, xd_i):
     """The frames `integrate` returns, stacked into arrays and read back: the same values.
     In reverse mode this keeps XLA's CPU backend from fusing position_update's scalar VJP
-    graph into the loops that pad the input arrays' cotangents, where it evaluated that graph
-    for every array element and, across the pads' branches, again for each entry: on reacher
-    one such loop, the input quaternions' cotangent, took 6.0 of a substep VJP's 8.3 ms
-    (session 72, B = 32; inverted_pendulum 0.40 of 0.67 ms). Read back from arrays, its
+    graph into the loops that pad the input arrays' cotangents, which evaluate that graph
+    per array element (and, by their cost, what the entries share once per entry): on
+    reacher one such loop, the input quaternions' cotangent, took 6.0 of a substep VJP's
+    8.3 ms (session 72, B = 32; inverted_pendulum 0.40 of 0.67 ms). Read back from arrays, its
     cotangent is padded once here, after position_update's VJP, and integrate's VJP reads
     it: one control step's value and VJP ran 23x faster on reacher (14.8 -> 0.64 ms) and
     1.55x on inverted_pendulum (0.79 -> 0.51 ms), the same to float32 round-off."""

@@ -15,7 +15,8 @@ METHOD = MethodSpec(
     task_overrides=TASK_OVERRIDES,
     # the spring substep's scene-specific pieces need its hand-written VJPs: turning
     # hand_adjoint off (--set hand_adjoint=false) takes their task overrides with it; so does
-    # turning planar_adjoint off take planar_links (its form over all links)
+    # turning planar_adjoint off take planar_links (its form over all links) and
+    # planar_normal_gravity (how it models reacher's gravity)
     requires={**{f: "hand_adjoint" for f in HAND_ADJOINT_PIECES},
               "planar_links": "planar_adjoint", "planar_normal_gravity": "planar_adjoint"},
     version="5",  # 3: mask_after_done option; 4: observation normalizer frozen;
