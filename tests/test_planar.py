@@ -117,9 +117,10 @@ def assert_same_step(want, got, pos: float, q: float, moves: float, vel: float =
     assert float(jnp.abs(got[2]).max()) > moves
 
 
-def _in_plane(kind, v):
+def _in_plane(kind, v, live=planar.LIVE):
+    """`v` with the entries `live[kind]` leaves out set to zero."""
     mask = np.zeros(v.shape[-1], np.float32)
-    mask[list(planar.LIVE[kind])] = 1.0
+    mask[list(live[kind])] = 1.0
     return v * mask
 
 
@@ -327,9 +328,7 @@ REACHER_LIVE = {"pos": [0, 1], "rot": [0, 3], "vel": [0, 1], "ang": [2]}
 
 
 def _in_reacher_plane(kind, v):
-    mask = np.zeros(v.shape[-1], np.float32)
-    mask[REACHER_LIVE[kind]] = 1.0
-    return v * mask
+    return _in_plane(kind, v, live=REACHER_LIVE)
 
 
 @pytest.mark.slow  # brax's control step compiled: ~1 minute (the default run checks reacher's
