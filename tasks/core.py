@@ -262,7 +262,7 @@ def hand_adjoint_refusal(task: Task) -> str | None:
 
 def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
                       hinges: bool = False, planar: bool = False,
-                      rotary: bool = False) -> Task:
+                      rotary: bool = False, saved_residuals: bool = False) -> Task:
     """A fresh copy of brax spring task `task` whose substeps run `tasks.spring_adjoint.step`:
     brax's spring substep with six pieces' VJPs written by hand (the same values and
     gradient to float32 round-off: tests/test_hand_adjoint.py). `remat` and `lean` as
@@ -271,7 +271,10 @@ def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
     3-dof joints' forces by `tasks.spring_adjoint.planar_root` (a scene whose 3-dof joints
     are all planar roots); `rotary`: its 2- and 3-dof joints' forces by
     `tasks.spring_adjoint.rotary_two` and `rotary_three` (a scene whose 2- and 3-dof joints
-    only turn). Errors for a task it does not fit."""
+    only turn); `saved_residuals` (with `remat`): the substep checkpoint saves the residuals
+    of `world_to_joint`'s and `inv_inertia`'s VJPs (`tasks.spring_adjoint.SAVED_RESIDUALS`)
+    instead of recomputing them (without `remat` every residual is saved anyway). Errors
+    for a task it does not fit."""
     why = hand_adjoint_refusal(task)
     if why is None and lean:
         why = lean_substeps_refusal(task)
@@ -295,7 +298,7 @@ def with_hand_adjoint(task: Task, remat: bool = True, lean: bool = False,
         raise ValueError(why)
     return _rebuilt_substep_loop(task, remat=remat, lean=lean, option="hand_adjoint",
                                  hand_adjoint=True, hinges=hinges, planar=planar,
-                                 rotary=rotary)
+                                 rotary=rotary, saved_residuals=saved_residuals)
 
 
 def positional_joints_refusal(task: Task) -> str | None:
@@ -339,12 +342,14 @@ def with_positional_joints(task: Task, remat: bool = True, lean: bool = False) -
 def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
                           hand_adjoint: bool = False, hinges: bool = False,
                           planar: bool = False, rotary: bool = False,
-                          positional: bool = False) -> Task:
+                          positional: bool = False, saved_residuals: bool = False) -> Task:
     """brax's `PipelineEnv.pipeline_step` (envs/base.py: a scan of `n_frames` substeps) built
     anew on a fresh copy of `task`, its substeps checkpointed (`remat`) and/or all but the
     last carrying the incoming q and qd (`lean`), and/or each substep
     `tasks.spring_adjoint.step` (`hand_adjoint`) or `tasks.positional_joints.step`
-    (`positional`). `option`: the config field the errors name
+    (`positional`); with `saved_residuals` the checkpoint saves the hand-written VJPs'
+    residuals named in `tasks.spring_adjoint.SAVED_RESIDUALS`. `option`: the config field
+    the errors name
     (and, after 'with_', the function to apply first)."""
     if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
@@ -357,7 +362,12 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
                          f"apply with_{option} first, to the task itself")
     inner.sys = given.sys
     # prevent_cse=False: inside a scan the CSE barrier only costs time
-    wrap = functools.partial(jax.checkpoint, prevent_cse=False) if remat else (lambda f: f)
+    policy = {}
+    if saved_residuals:
+        from tasks.spring_adjoint import SAVED_RESIDUALS
+        policy = {"policy": jax.checkpoint_policies.save_only_these_names(*SAVED_RESIDUALS)}
+    wrap = (functools.partial(jax.checkpoint, prevent_cse=False, **policy) if remat
+            else (lambda f: f))
 
     if hand_adjoint:
         from tasks.spring_adjoint import step

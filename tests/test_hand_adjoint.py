@@ -493,3 +493,83 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     assert not (human.hand_adjoint or human.hinge_forces or human.rotary_joints)
     with pytest.raises(ValueError, match="hinge_forces is a piece of hand_adjoint"):
         build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "true"})
+
+
+def _saved(fn, *args) -> list[str]:
+    """The descriptions of what reverse mode of `fn` saves (`print_saved_residuals`)."""
+    import contextlib
+    import io
+    from jax.ad_checkpoint import print_saved_residuals
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        print_saved_residuals(fn, *args)
+    return out.getvalue().splitlines()
+
+
+def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
+    """`saved_residuals` (session 73): ant's checkpointed substep, as `with_hand_adjoint`
+    wraps it, saves for its backward its inputs only; with the policy
+    `save_only_these_names(*SAVED_RESIDUALS)` it saves, beside them, exactly the ten arrays
+    world_to_joint's forward names (the parents', joint frames' and links' rotations, four
+    per-link 4-vectors plus the integrated rotations, and five 3-vectors: offsets and
+    motions) and the two inv_inertia's does (the rotation and its product with the inertia
+    frames'), every one state-dependent, none of the system's constants. Tracing only."""
+    import re
+    from tasks.spring_adjoint import SAVED_RESIDUALS, step
+    task, ps, act = _states("ant", batch=1, steps=1)
+    sys_ = task.env.unwrapped.sys
+    ps1, act1 = jax.tree.map(lambda a: a[0], ps), act[0]
+
+    def substep(x, x_i, xd_i, act):
+        out = step(sys_, ps1.replace(x=x, x_i=x_i, xd_i=xd_i), act, hinges=True)
+        return jnp.sum(out.x.pos) + jnp.sum(out.j.rot) + jnp.sum(out.jd.ang)
+    args = (ps1.x, ps1.x_i, ps1.xd_i, act1)
+    policy = jax.checkpoint_policies.save_only_these_names(*SAVED_RESIDUALS)
+    plain = [s for s in _saved(jax.checkpoint(substep), *args) if "from a constant" not in s]
+    saved = [s for s in _saved(jax.checkpoint(substep, policy=policy), *args)
+             if "from a constant" not in s]
+    assert plain and all("from the argument" in s for s in plain)
+    named = {name: [s.split()[0] for s in saved if f"named '{name}'" in s]
+             for name in SAVED_RESIDUALS}
+    assert sorted(named[SAVED_RESIDUALS[0]]) == ["f32[9,3]"] * 5 + ["f32[9,4]"] * 5
+    assert named[SAVED_RESIDUALS[1]] == ["f32[9,4]"] * 2
+    assert sorted(plain) == sorted(s for s in saved if not re.search(r"named '", s))
+
+
+def test_saved_residuals_is_opt_in_and_a_piece_of_hand_adjoint():
+    """`saved_residuals` without `hand_adjoint` is refused by name; no task trains with it by
+    default (session 73: it changes ant's and humanoid's update only by float32 round-off,
+    which their contact-rich rollouts amplify, so their recorded cells would have to be
+    re-run first); where a task has hand_adjoint, `--set saved_residuals=true` turns it on,
+    and `--set hand_adjoint=false` takes it off with the rest (the method's `requires`)."""
+    from bench.plugins import build_config, get_method
+    from methods.ild.config import TASK_OVERRIDES
+    with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
+        ILDConfig(saved_residuals=True)
+    assert not any(over.get("saved_residuals") for over in TASK_OVERRIDES.values())
+    ild = get_method("ild")
+    on = build_config(ild, "ant", "cpu", {"saved_residuals": "true"})
+    assert on.saved_residuals and on.hand_adjoint and on.substep_remat
+    assert not build_config(ild, "ant", "cpu", {}).saved_residuals
+    with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
+        build_config(ild, "ant", "cpu", {"hand_adjoint": "false", "saved_residuals": "true"})
+
+
+@pytest.mark.slow  # two compilations of ant's control-step VJP: about 2 minutes on one core
+def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
+    """One control step of ant (10 substeps, 8 envs, 10 steps after reset) through the step
+    ILD trains with, with and without `saved_residuals`: the end state and the gradient of
+    a function of it in the incoming state and the actions agree to float32 round-off
+    (saving a residual rather than computing it again is the same function; XLA fuses the
+    two programs differently)."""
+    from methods.ild.benchmark import task_config
+    task, ps, act = _states("ant")
+    got = []
+    for on in (False, True):
+        cfg = task_config("ant", 8, {"saved_residuals": on})
+        assert cfg.hand_adjoint and cfg.substep_remat and cfg.saved_residuals is on
+        got.append(_step_and_vjp(rollout_physics(task, cfg).env.unwrapped.pipeline_step, ps,
+                                 act))
+    (want_v, want_g), (got_v, got_g) = got
+    for w, g in zip(want_v + tuple(want_g), got_v + tuple(got_g), strict=True):
+        scale = float(jnp.max(jnp.abs(w)))
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-5 * max(scale, 1.0))

@@ -13,7 +13,8 @@ PLANAR_ADJOINT_EXCLUDES = ("small_dots", "closed_form_adjoint")
 backward, or brax's step as small products."""
 
 
-HAND_ADJOINT_PIECES = ("hinge_forces", "planar_root", "rotary_joints")
+HAND_ADJOINT_PIECES = ("hinge_forces", "planar_root", "rotary_joints",
+                       "saved_residuals")
 """ILDConfig fields that are pieces of `hand_adjoint`'s spring substep: each needs it on
 (the config's check; the method's `requires`)."""
 
@@ -225,6 +226,23 @@ class ILDConfig:
     fewer operations (humanoid's update 9% fewer): paired (`--variant task --variant
     task,rotary_joints`, session 53) 1.125x faster on humanoid. Off in the class; since
     session 53 the TASK_OVERRIDES of the tasks in `ROTARY_JOINTS_TASKS` turn it on."""
+    saved_residuals: bool = False
+    """With `hand_adjoint` and `substep_remat`: the substep checkpoint saves the residuals of
+    the hand-written VJPs of `world_to_joint` and `inv_inertia` (the joint frames' rotations,
+    offsets and motions; the links' rotations into their inertia frames) in the forward,
+    instead of recomputing them next to the backward
+    (`tasks.spring_adjoint.SAVED_RESIDUALS`). XLA's CPU backend fuses the recomputed
+    quaternion and cross products into the VJPs' loops, which evaluate them again per
+    output entry: ant's costliest physics fusion, a world_to_joint VJP loop, ran at 4-7x
+    the time per instruction and element of the plain loops (session 73). The same
+    function, the values saved rather than computed again, but another float32 program
+    (ant's loss 2.402289 -> 2.402243 after two updates). Paired on one core at B = 32
+    (`python -m methods.ild.paired --task T --variant task --variant task,saved_residuals
+    --apg-physics none --forward`, session 73, results/saved_residuals/): the update 1.120x
+    faster on ant, update / forward 3.20x -> 2.87x (every round 2.78-2.94x), and 1.125x on
+    humanoid, 3.40x -> 3.02x (rounds 2.77-3.45x). Without `substep_remat` every residual is
+    saved anyway. Off by default: no task override turns it on until ant's and humanoid's
+    recorded ILD cells are re-run with it."""
     positional_joints: bool = False
     """On brax's positional backend, for a scene whose joints are hinges and slides
     (reacher, inverted_pendulum): each substep by `tasks.positional_joints.step`, brax's

@@ -317,7 +317,8 @@ def rollout_physics(task, config: ILDConfig):
     if config.hand_adjoint:
         task = with_hand_adjoint(task, remat=remat, lean=config.lean_substeps,
                                  hinges=config.hinge_forces, planar=config.planar_root,
-                                 rotary=config.rotary_joints)
+                                 rotary=config.rotary_joints,
+                                 saved_residuals=config.saved_residuals)
     elif config.positional_joints:
         task = with_positional_joints(task, remat=remat, lean=config.lean_substeps)
     elif config.lean_substeps:
