@@ -349,8 +349,7 @@ def _rebuilt_substep_loop(task: Task, *, remat: bool, lean: bool, option: str,
     `tasks.spring_adjoint.step` (`hand_adjoint`) or `tasks.positional_joints.step`
     (`positional`); with `saved_residuals` the checkpoint saves the hand-written VJPs'
     residuals named in `tasks.spring_adjoint.SAVED_RESIDUALS`. `option`: the config field
-    the errors name
-    (and, after 'with_', the function to apply first)."""
+    the errors name (and, after 'with_', the function to apply first)."""
     if not has_substep_loop(task):
         raise ValueError(f"task {task.name!r} has no brax physics pipeline to rebuild "
                          f"({option} is for brax PipelineEnv tasks; leave it False)")
