@@ -509,11 +509,10 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
     """`saved_residuals` (session 73): ant's checkpointed substep, as `with_hand_adjoint`
     wraps it, saves for its backward its inputs only; with the policy
     `save_only_these_names(*SAVED_RESIDUALS)` it saves, beside them, exactly the ten arrays
-    world_to_joint's forward names (the parents', joint frames' and links' rotations, four
-    per-link 4-vectors plus the integrated rotations, and five 3-vectors: offsets and
-    motions) and the two inv_inertia's does (the rotation and its product with the inertia
-    frames'), every one state-dependent, none of the system's constants. Tracing only."""
-    import re
+    world_to_joint's forward names (five per-link rotations: the link's, its parent's and
+    the three frames composed from them; five 3-vectors: offsets and motions) and the two
+    inv_inertia's does (the rotation and its product with the inertia frames'), every one
+    state-dependent, none of the system's constants. Tracing only."""
     from tasks.spring_adjoint import SAVED_RESIDUALS, step
     task, ps, act = _states("ant", batch=1, steps=1)
     sys_ = task.env.unwrapped.sys
@@ -532,7 +531,7 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
              for name in SAVED_RESIDUALS}
     assert sorted(named[SAVED_RESIDUALS[0]]) == ["f32[9,3]"] * 5 + ["f32[9,4]"] * 5
     assert named[SAVED_RESIDUALS[1]] == ["f32[9,4]"] * 2
-    assert sorted(plain) == sorted(s for s in saved if not re.search(r"named '", s))
+    assert sorted(plain) == sorted(s for s in saved if "named '" not in s)
 
 
 def test_saved_residuals_is_opt_in_and_a_piece_of_hand_adjoint():
