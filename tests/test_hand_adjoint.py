@@ -534,21 +534,27 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
     assert sorted(plain) == sorted(s for s in saved if "named '" not in s)
 
 
-def test_saved_residuals_is_opt_in_and_a_piece_of_hand_adjoint():
-    """`saved_residuals` without `hand_adjoint` is refused by name; no task trains with it by
-    default (session 73: it changes ant's and humanoid's update only by float32 round-off,
-    which their contact-rich rollouts amplify, so their recorded cells would have to be
-    re-run first); where a task has hand_adjoint, `--set saved_residuals=true` turns it on,
-    and `--set hand_adjoint=false` takes it off with the rest (the method's `requires`)."""
+def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint():
+    """`saved_residuals` without `hand_adjoint` is refused by name. Since session 74 (their
+    cells re-run with it) ant and humanoid train with it and no other task does; where a
+    task has hand_adjoint, `--set saved_residuals=true` turns it on and `=false` off, and
+    `--set hand_adjoint=false` takes it off with the rest (the method's `requires`)."""
     from bench.plugins import build_config, get_method
-    from methods.ild.config import TASK_OVERRIDES
+    from methods.ild.config import SAVED_RESIDUALS_TASKS, TASK_OVERRIDES
     with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
         ILDConfig(saved_residuals=True)
-    assert not any(over.get("saved_residuals") for over in TASK_OVERRIDES.values())
+    assert SAVED_RESIDUALS_TASKS == ("ant", "humanoid")
+    assert sorted(t for t, over in TASK_OVERRIDES.items()
+                  if over.get("saved_residuals")) == ["ant", "humanoid"]
     ild = get_method("ild")
-    on = build_config(ild, "ant", "cpu", {"saved_residuals": "true"})
-    assert on.saved_residuals and on.hand_adjoint and on.substep_remat
-    assert not build_config(ild, "ant", "cpu", {}).saved_residuals
+    for task in SAVED_RESIDUALS_TASKS:
+        on = build_config(ild, task, "cpu", {})
+        assert on.saved_residuals and on.hand_adjoint and on.substep_remat
+        assert not build_config(ild, task, "cpu", {"saved_residuals": "false"}).saved_residuals
+        off = build_config(ild, task, "cpu", {"hand_adjoint": "false"})
+        assert not off.saved_residuals and not off.hand_adjoint
+    assert not build_config(ild, "hopper", "cpu", {}).saved_residuals
+    assert build_config(ild, "hopper", "cpu", {"saved_residuals": "true"}).saved_residuals
     with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
         build_config(ild, "ant", "cpu", {"hand_adjoint": "false", "saved_residuals": "true"})
 

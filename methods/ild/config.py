@@ -241,8 +241,9 @@ class ILDConfig:
     --apg-physics none --forward`, session 73, results/saved_residuals/): the update 1.120x
     faster on ant, update / forward 3.20x -> 2.87x (every round 2.78-2.94x), and 1.125x on
     humanoid, 3.40x -> 3.02x (rounds 2.77-3.45x). Without `substep_remat` every residual is
-    saved anyway. Off by default: no task override turns it on until ant's and humanoid's
-    recorded ILD cells are re-run with it."""
+    saved anyway. Off in the class; since session 74 the TASK_OVERRIDES of the tasks in
+    `SAVED_RESIDUALS_TASKS` (ant, humanoid) turn it on (their 3- and 10-minute ILD cells
+    re-run with it); there `--set hand_adjoint=false` turns it off too."""
     positional_joints: bool = False
     """On brax's positional backend, for a scene whose joints are hinges and slides
     (reacher, inverted_pendulum): each substep by `tasks.positional_joints.step`, brax's
@@ -509,3 +510,12 @@ _merge_overrides(PLANAR_NORMAL_GRAVITY_TASKS, planar_normal_gravity=True)
 # 10-minute ILD cells with it.
 PLANAR_LINKS_TASKS = ("hopper", "walker2d")
 _merge_overrides(PLANAR_LINKS_TASKS, planar_links=True)
+
+# The substep checkpoint saving world_to_joint's and inv_inertia's VJP residuals (session 73)
+# on the two spring tasks that still run hand_adjoint's full 3-D backward: the same step and
+# gradient to float32 round-off (tests/test_hand_adjoint.py); one core, B = 32, paired
+# against the same update recomputing them (results/saved_residuals/paired_session73_*.csv):
+# ant 1.120x, humanoid 1.125x faster, update / forward 3.20x -> 2.87x and 3.40x -> 3.02x.
+# Session 74 re-ran their 3- and 10-minute ILD cells with it.
+SAVED_RESIDUALS_TASKS = ("ant", "humanoid")
+_merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
