@@ -128,9 +128,36 @@ def _cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | No
     return p, rec, skipped
 
 
+def exit_with_parent() -> None:
+    """In a spawned child: a daemon thread that ends this process as soon as its parent
+    process ends, however it ends (SIGTERM, SIGKILL, a crash). A sweep stopped by a signal
+    to its own process would otherwise leave its running cell behind, training on beside
+    whatever runs next and writing its record into the store after the sweep is gone
+    (session 74: two such cells ran on, sharing the cores with the restarted sweep's).
+    A cell ended this way writes no record (records are written whole, at the end), so it
+    re-runs on resume. Nothing to do in a process that is no multiprocessing child."""
+    import multiprocessing as mp
+    import os
+    import threading
+    from multiprocessing.connection import wait
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch():
+        wait([parent.sentinel])  # ready when the parent has ended
+        os._exit(EXIT_PARENT_GONE)
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+EXIT_PARENT_GONE = 75
+"""The exit code of a spawned cell whose sweep ended before it (`exit_with_parent`)."""
+
+
 def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
            quiet: bool = False) -> None:
     import os
+    exit_with_parent()
     r = request
     if os.environ.get(CRASH_HOOK) == f"{r.method}/{r.task}/{r.seed}":
         os._exit(70)

@@ -121,3 +121,26 @@ def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
     if malloc.thp_mode() == "madvise":
         assert plain["faults"] > 0.8 * plain["temp_mib"] * 256  # a fault per 4 KiB page
         assert huge["faults"] < plain["faults"] / 10
+
+
+def test_python_m_bench_cli_reexecutes_as_ildbench_does(able, monkeypatch):
+    """`python -m bench.cli` takes `ildbench`'s path (`entry`), huge-page tunable included:
+    before session 74 it ran `main` alone, and sweeps started that way (session 72's reacher
+    cells, session 74's first start) ran without the tunable their neighbours had."""
+    import runpy
+    import warnings
+    calls = []
+
+    def fake_execve(path, argv, env):
+        calls.append((path, argv, env.get("GLIBC_TUNABLES")))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(os, "execve", fake_execve)
+    monkeypatch.setattr(sys, "argv", ["/somewhere/bench/cli.py", "tasks"])
+    for name in ("GLIBC_TUNABLES", "ILDBENCH_HUGEPAGES", "ILDBENCH_HUGEPAGES_SET"):
+        monkeypatch.delenv(name, raising=False)
+    with warnings.catch_warnings(), pytest.raises(SystemExit):
+        warnings.simplefilter("ignore", RuntimeWarning)  # bench.cli is imported already
+        runpy.run_module("bench.cli", run_name="__main__")
+    assert calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "tasks"],
+                      "glibc.malloc.hugetlb=1")]

@@ -151,3 +151,79 @@ def test_progress_eta_from_mean_wall_time():
     p.update(Outcome("b", "m", "t", 1, "ok", 0.5, False, 10.0))
     p.update(Outcome("c", "m", "t", 2, "ok", 0.5, False, 20.0))
     assert p.eta_s() == pytest.approx(2 * 15.0)                    # 2 left x mean 15 s
+
+
+_CHILD = '''
+import os, sys, time
+def run(path, watch):
+    if watch:
+        from bench.sweep import exit_with_parent
+        exit_with_parent()
+    with open(path + ".tmp", "w") as f:
+        f.write(str(os.getpid()))
+    os.replace(path + ".tmp", path)
+    time.sleep(120)
+'''
+_PARENT = '''
+import multiprocessing as mp, sys, time
+import child_mod
+if __name__ == "__main__":
+    mp.get_context("spawn").Process(target=child_mod.run,
+                                    args=(sys.argv[1], sys.argv[2] == "1")).start()
+    time.sleep(120)
+'''
+
+
+def _alive(pid: int) -> bool:
+    """Running, not a zombie waiting for a reaper."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+@pytest.mark.parametrize("watch", [True, False])
+def test_a_spawned_cell_ends_with_its_sweep(tmp_path, watch):
+    """A sweep's spawned cell process (`_child` calls `exit_with_parent` first) ends within
+    seconds of its parent being killed (SIGKILL: no handler runs in the parent). Without the
+    watcher the same child runs on after its parent is gone (session 74: two orphaned cells
+    trained on beside a restarted sweep and wrote their records into its store)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    (tmp_path / "child_mod.py").write_text(_CHILD)
+    (tmp_path / "parent.py").write_text(_PARENT)
+    pid_file = tmp_path / "child.pid"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": root}
+    parent = subprocess.Popen([sys.executable, "parent.py", str(pid_file), str(int(watch))],
+                              cwd=tmp_path, env=env)
+    child = None
+    try:
+        deadline = time.monotonic() + 120
+        while not pid_file.exists():
+            assert time.monotonic() < deadline and parent.poll() is None, "no child started"
+            time.sleep(0.2)
+        child = int(pid_file.read_text())
+        assert _alive(child)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + (10 if watch else 3)  # it ends in well under 1 s
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _alive(child) is not watch
+    finally:
+        parent.kill()
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)
+
+
+def test_child_starts_its_parent_watch_before_the_cell(monkeypatch):
+    calls = []
+    monkeypatch.setattr(sweep, "exit_with_parent", lambda: calls.append("watch"))
+    monkeypatch.setattr(sweep, "_cell", lambda *a, **k: calls.append("cell"))
+    sweep._child(_bc(0), "unused", False, None, quiet=True)
+    assert calls == ["watch", "cell"]
