@@ -125,8 +125,9 @@ def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
 
 def test_python_m_bench_cli_reexecutes_as_ildbench_does(able, monkeypatch):
     """`python -m bench.cli` takes `ildbench`'s path (`entry`), huge-page tunable included:
-    before session 74 it ran `main` alone, and sweeps started that way (session 72's reacher
-    cells, session 74's first start) ran without the tunable their neighbours had."""
+    before session 74 it ran `main` alone, and sweeps started that way (inverted_pendulum's
+    and reacher's ILD cells, sessions 66 and 72; session 74's first start) ran without the
+    tunable the other cells had."""
     import runpy
     import warnings
     calls = []

@@ -515,7 +515,9 @@ _merge_overrides(PLANAR_LINKS_TASKS, planar_links=True)
 # on the two spring tasks that still run hand_adjoint's full 3-D backward: the same step and
 # gradient to float32 round-off (tests/test_hand_adjoint.py); one core, B = 32, paired
 # against the same update recomputing them (results/saved_residuals/paired_session73_*.csv):
-# ant 1.120x, humanoid 1.125x faster, update / forward 3.20x -> 2.87x and 3.40x -> 3.02x.
-# Session 74 re-ran their 3- and 10-minute ILD cells with it.
+# ant 1.120x, humanoid 1.125x faster, update / forward 3.20x -> 2.87x and 3.40x -> 3.02x;
+# paired with brax's APG between the rounds (results/saved_residuals/paired_session74_*.csv)
+# ant 1.03x, humanoid 1.13x, update / forward 3.39x -> 3.26x and 3.35x -> 2.98x. Session 74
+# re-ran their 3- and 10-minute ILD cells with it.
 SAVED_RESIDUALS_TASKS = ("ant", "humanoid")
 _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
