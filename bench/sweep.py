@@ -128,6 +128,10 @@ def _cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | No
     return p, rec, skipped
 
 
+EXIT_PARENT_GONE = 75
+"""The exit code of a spawned cell whose sweep ended before it (`exit_with_parent`)."""
+
+
 def exit_with_parent() -> None:
     """In a spawned child: a daemon thread that ends this process as soon as its parent
     process ends, however it ends (SIGTERM, SIGKILL, a crash). A sweep stopped by a signal
@@ -148,10 +152,6 @@ def exit_with_parent() -> None:
         wait([parent.sentinel])  # ready when the parent has ended
         os._exit(EXIT_PARENT_GONE)
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
-
-
-EXIT_PARENT_GONE = 75
-"""The exit code of a spawned cell whose sweep ended before it (`exit_with_parent`)."""
 
 
 def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,

@@ -16,6 +16,22 @@ def able(monkeypatch):
     monkeypatch.setattr(malloc, "thp_mode", lambda path=malloc.THP_PATH: "madvise")
 
 
+@pytest.fixture
+def execve_calls(monkeypatch):
+    """`os.execve` recorded rather than run, as (path, argv, GLIBC_TUNABLES), each call ending
+    the caller with SystemExit(0) (execve does not return); the tunable's variables unset."""
+    calls = []
+
+    def fake_execve(path, argv, env):
+        calls.append((path, argv, env.get("GLIBC_TUNABLES")))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(os, "execve", fake_execve)
+    for name in ("GLIBC_TUNABLES", "ILDBENCH_HUGEPAGES", "ILDBENCH_HUGEPAGES_SET"):
+        monkeypatch.delenv(name, raising=False)
+    return calls
+
+
 def test_env_with_hugepages_adds_the_tunable_once(able, monkeypatch):
     tun, done = "glibc.malloc.hugetlb=1", {"ILDBENCH_HUGEPAGES_SET": "1"}
     assert malloc.env_with_hugepages({"A": "b"}) == {"A": "b", "GLIBC_TUNABLES": tun, **done}
@@ -45,18 +61,10 @@ def test_thp_mode_reads_the_bracketed_mode(tmp_path):
     assert malloc.thp_mode(str(tmp_path / "missing")) is None
 
 
-def test_ildbench_reexecutes_itself_once_with_the_tunable(able, monkeypatch):
-    calls = []
-
-    def fake_execve(path, argv, env):
-        calls.append((path, argv, env.get("GLIBC_TUNABLES")))
-        raise SystemExit(0)  # execve does not return
-
-    monkeypatch.setattr(os, "execve", fake_execve)
+def test_ildbench_reexecutes_itself_once_with_the_tunable(able, execve_calls, monkeypatch):
+    calls = execve_calls
     monkeypatch.setattr(cli, "main", lambda: 7)
     monkeypatch.setattr(sys, "argv", ["ildbench", "run", "--task", "pointmass"])
-    for name in ("GLIBC_TUNABLES", "ILDBENCH_HUGEPAGES", "ILDBENCH_HUGEPAGES_SET"):
-        monkeypatch.delenv(name, raising=False)
     with pytest.raises(SystemExit):
         cli.entry()
     assert calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "run", "--task",
@@ -123,25 +131,16 @@ def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
         assert huge["faults"] < plain["faults"] / 10
 
 
-def test_python_m_bench_cli_reexecutes_as_ildbench_does(able, monkeypatch):
+def test_python_m_bench_cli_reexecutes_as_ildbench_does(able, execve_calls, monkeypatch):
     """`python -m bench.cli` takes `ildbench`'s path (`entry`), huge-page tunable included:
     before session 74 it ran `main` alone, and sweeps started that way (inverted_pendulum's
     and reacher's ILD cells, sessions 66 and 72; session 74's first start) ran without the
     tunable the other cells had."""
     import runpy
     import warnings
-    calls = []
-
-    def fake_execve(path, argv, env):
-        calls.append((path, argv, env.get("GLIBC_TUNABLES")))
-        raise SystemExit(0)
-
-    monkeypatch.setattr(os, "execve", fake_execve)
     monkeypatch.setattr(sys, "argv", ["/somewhere/bench/cli.py", "tasks"])
-    for name in ("GLIBC_TUNABLES", "ILDBENCH_HUGEPAGES", "ILDBENCH_HUGEPAGES_SET"):
-        monkeypatch.delenv(name, raising=False)
     with warnings.catch_warnings(), pytest.raises(SystemExit):
         warnings.simplefilter("ignore", RuntimeWarning)  # bench.cli is imported already
         runpy.run_module("bench.cli", run_name="__main__")
-    assert calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "tasks"],
-                      "glibc.malloc.hugetlb=1")]
+    assert execve_calls == [(sys.executable, [sys.executable, "-m", "bench.cli", "tasks"],
+                             "glibc.malloc.hugetlb=1")]
