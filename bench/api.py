@@ -114,6 +114,12 @@ class MethodSpec:
     """Named field overrides, e.g. {'cpu': {...}, 'paper': {}}."""
     task_overrides: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
     """Per-task field overrides applied before presets and user overrides."""
+    platform_overrides: Mapping[str, Mapping[str, Mapping[str, Any]]] = dataclasses.field(
+        default_factory=dict)
+    """Platform -> task -> field overrides, for the platform JAX computes on
+    (`jax.default_backend()`: 'cpu', 'gpu', 'tpu'), applied after the task's overrides and
+    before the preset and user overrides: a choice whose speed differs by accelerator. A field
+    they turn off takes the task overrides of the fields that `requires` it along."""
     requires: Mapping[str, str] = dataclasses.field(default_factory=dict)
     """Field -> the field it needs on (e.g. a piece of a rewrite -> the rewrite): where a
     task override turned the first on and a preset or the user turns the second off, the

@@ -51,6 +51,15 @@ def register(spec: MethodSpec, source: str = "in-repo") -> MethodSpec:
     if not (dataclasses.is_dataclass(spec.config_cls)
             and spec.config_cls.__dataclass_params__.frozen):
         raise TypeError(f"method {spec.name!r}: config_cls must be a frozen dataclass")
+    # checked here, not where they apply: another platform's overrides never run on this one
+    fields = [f.name for f in dataclasses.fields(spec.config_cls)]
+    for platform, per_task in spec.platform_overrides.items():
+        for task, over in per_task.items():
+            unknown = sorted(set(over) - set(fields))
+            if unknown:
+                raise ConfigError(f"method {spec.name!r}: platform_overrides[{platform!r}]"
+                                  f"[{task!r}] names no config field {unknown}; fields: "
+                                  f"{', '.join(fields)}")
     _REGISTRY[spec.name] = spec
     _SOURCES[spec.name] = source
     return spec
@@ -128,10 +137,18 @@ def _coerce(field: dataclasses.Field, hint, value: Any, method: str) -> Any:
     return value
 
 
+def current_platform() -> str:
+    """The platform JAX computes on here: 'cpu', 'gpu' or 'tpu' (`jax.default_backend()`)."""
+    import jax
+    return jax.default_backend()
+
+
 def build_config(spec: MethodSpec, task: str, preset: str | None = None,
-                 overrides: Mapping[str, Any] | None = None):
-    """defaults (the paper's) <- per-task overrides <- preset <- user overrides; a task
-    override whose `spec.requires` field a preset or the user turns off is dropped."""
+                 overrides: Mapping[str, Any] | None = None, platform: str | None = None):
+    """defaults (the paper's) <- per-task overrides <- the platform's per-task overrides
+    (`platform`, default `current_platform()` where the spec has any) <- preset <- user
+    overrides; a task override whose `spec.requires` field a later layer turns off is
+    dropped."""
     fields = {f.name: f for f in dataclasses.fields(spec.config_cls)}
     hints = typing.get_type_hints(spec.config_cls)
     if preset is not None and preset not in spec.presets:
@@ -139,8 +156,11 @@ def build_config(spec: MethodSpec, task: str, preset: str | None = None,
                           f"{', '.join(sorted(spec.presets)) or 'none'}")
     merged: dict[str, Any] = {}
     layer_of: dict[str, int] = {}  # the last layer that set each field (0: the task's)
-    layers = [spec.task_overrides.get(task, {}), spec.presets.get(preset, {}) if preset else {},
-              overrides or {}]
+    if platform is None and spec.platform_overrides:
+        platform = current_platform()
+    on_platform = spec.platform_overrides.get(platform, {}).get(task, {})
+    layers = [spec.task_overrides.get(task, {}), on_platform,
+              spec.presets.get(preset, {}) if preset else {}, overrides or {}]
     for i, layer in enumerate(layers):
         for k, v in layer.items():
             if k not in fields:

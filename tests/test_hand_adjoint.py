@@ -560,6 +560,32 @@ def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint(
 
 
 @pytest.mark.slow  # two compilations of ant's control-step VJP: about 2 minutes on one core
+
+def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
+    """PLATFORM_OVERRIDES: on 'gpu' ant's and humanoid's config has hand_adjoint off and with
+    it its pieces (hinge_forces, saved_residuals, rotary_joints), the rest of the task's
+    overrides kept; on 'cpu' the pieces stay on; `--set hand_adjoint=true` on a GPU brings them
+    back; every other task's config is the same on both platforms."""
+    import dataclasses as dc
+
+    from bench.plugins import build_config, get_method
+    from methods.ild.config import TASK_OVERRIDES
+    ild = get_method("ild")
+    for task, pieces in (("ant", ("hinge_forces", "saved_residuals")),
+                         ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"))):
+        cpu = build_config(ild, task, "paper", platform="cpu")
+        gpu = build_config(ild, task, "paper", platform="gpu")
+        assert cpu.hand_adjoint and all(getattr(cpu, f) for f in pieces)
+        assert not gpu.hand_adjoint and not any(getattr(gpu, f) for f in pieces)
+        assert gpu.lean_substeps and gpu.substep_remat and gpu.num_envs == 360
+        assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces}) == cpu
+        back = build_config(ild, task, "paper", {"hand_adjoint": "true"}, platform="gpu")
+        assert back == cpu
+    for task in TASK_OVERRIDES:
+        if task not in ("ant", "humanoid"):
+            assert (build_config(ild, task, "cpu", platform="gpu")
+                    == build_config(ild, task, "cpu", platform="cpu")), task
+
 def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
     """One control step of ant (10 substeps, 8 envs, 10 steps after reset) through the step
     ILD trains with, with and without `saved_residuals`: the end state and the gradient of

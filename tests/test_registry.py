@@ -107,16 +107,18 @@ def test_invalid_config_is_a_clear_error(overrides, match):
         build_config(get_method("bc"), "pointmass", None, overrides)
 
 
+@dataclasses.dataclass(frozen=True)
+class Cfg:
+    """A toy method's config: a rewrite, a piece of it, a number."""
+    rewrite: bool = False
+    piece: bool = False
+    lr: float = 1.0
+
+
 def test_a_task_override_goes_with_the_field_it_requires():
     """`MethodSpec.requires`: a field a task override turned on goes back to its default when
     a later layer (preset or user) turns off the field it needs; one the user or a preset
     sets stays (and meets the config's own check); a needed field left on keeps it."""
-    @dataclasses.dataclass(frozen=True)
-    class Cfg:
-        rewrite: bool = False
-        piece: bool = False
-        lr: float = 1.0
-
     spec = MethodSpec(name="toy", train=lambda *a: None, config_cls=Cfg, uses=Uses(),
                       presets={"off": {"rewrite": False}},
                       task_overrides={"t": {"rewrite": True, "piece": True, "lr": 2.0}},
@@ -128,6 +130,32 @@ def test_a_task_override_goes_with_the_field_it_requires():
                         ) == Cfg(False, True, 2.0)  # asked for: kept (no check in Cfg)
     assert build_config(spec, "t", None, {"lr": "3"}) == Cfg(True, True, 3.0)
     assert build_config(spec, "u", None, {"piece": "true"}) == Cfg(False, True, 1.0)
+
+
+def test_platform_overrides_sit_between_the_tasks_and_the_preset():
+    """`MethodSpec.platform_overrides`: the platform's per-task fields win over the task's,
+    lose to a preset's and the user's; one that turns a needed field off takes the task's
+    dependent field along; another platform or task sees none of them; without `platform`
+    build_config reads `current_platform()` (CPU here)."""
+    spec = MethodSpec(name="toy", train=lambda *a: None, config_cls=Cfg, uses=Uses(),
+                      presets={"fast": {"lr": 5.0}},
+                      task_overrides={"t": {"rewrite": True, "piece": True, "lr": 2.0}},
+                      platform_overrides={"gpu": {"t": {"rewrite": False, "lr": 3.0}}},
+                      requires={"piece": "rewrite"})
+    assert build_config(spec, "t", platform="cpu") == Cfg(True, True, 2.0)
+    assert build_config(spec, "t", platform="gpu") == Cfg(False, False, 3.0)
+    assert build_config(spec, "t", "fast", platform="gpu") == Cfg(False, False, 5.0)
+    assert build_config(spec, "t", None, {"rewrite": "true"}, platform="gpu"
+                        ) == Cfg(True, True, 3.0)  # the user's rewrite keeps the task's piece
+    assert build_config(spec, "u", platform="gpu") == Cfg(False, False, 1.0)
+    assert plugins.current_platform() == "cpu"
+    assert build_config(spec, "t") == Cfg(True, True, 2.0)
+    typo = dataclasses.replace(spec, name="toy_typo",
+                               platform_overrides={"gpu": {"t": {"rewrit": False}}})
+    with pytest.raises(ConfigError, match=r"platform_overrides\['gpu'\]\['t'\] names no "
+                                          r"config field \['rewrit'\]"):
+        plugins.register(typo)
+    assert "toy_typo" not in plugins._REGISTRY
 
 
 def test_unknown_preset():

@@ -1,6 +1,7 @@
 """ild: Imitation Learning via Differentiable Physics (the paper's method)."""
 from bench.api import MethodSpec, Uses
-from methods.ild.config import HAND_ADJOINT_PIECES, PRESETS, TASK_OVERRIDES, ILDConfig
+from methods.ild.config import (HAND_ADJOINT_PIECES, PLATFORM_OVERRIDES, PRESETS, TASK_OVERRIDES,
+                               ILDConfig)
 from methods.ild.train import train
 
 METHOD = MethodSpec(
@@ -13,6 +14,7 @@ METHOD = MethodSpec(
                 "(truncated BPTT, per-step gradient normalization, BC warm start)",
     presets=PRESETS,
     task_overrides=TASK_OVERRIDES,
+    platform_overrides=PLATFORM_OVERRIDES,  # ant's and humanoid's on a GPU
     # the spring substep's scene-specific pieces need its hand-written VJPs: turning
     # hand_adjoint off (--set hand_adjoint=false) takes their task overrides with it; so does
     # turning planar_adjoint off take planar_links (its form over all links) and

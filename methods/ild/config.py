@@ -521,3 +521,18 @@ _merge_overrides(PLANAR_LINKS_TASKS, planar_links=True)
 # re-ran their 3- and 10-minute ILD cells with it.
 SAVED_RESIDUALS_TASKS = ("ant", "humanoid")
 _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
+
+# On a GPU, ant and humanoid differentiate brax's spring substep by XLA's reverse mode
+# (`hand_adjoint` off, which takes its pieces `hinge_forces`, `saved_residuals` and
+# `rotary_joints` along: `MethodSpec.requires`). The hand-written VJPs were tuned on one CPU
+# core, where an update's time is mostly its number of XLA operations and they gain there
+# at every batch (1.47x on ant at B = 360, session 56); on one H200 they cost ant and humanoid
+# time (results/gpu/speed_session75/speed.csv, each timed section alone on the GPU, one
+# timing of 3 updates each): ant at B = 360 0.5383 / 0.5238 s per update with them (two
+# calls) against 0.4667 / 0.4105 s without, humanoid 0.6089 s against 0.5639 s, ant at
+# B = 32 0.4457 s against 0.3849 s; session 56 saw humanoid's 8% the same way in two calls
+# (ant's flipped there). The gradient is the same to float32 round-off either way, so this is
+# a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back.
+PLATFORM_OVERRIDES: dict[str, dict[str, dict]] = {
+    "gpu": {name: {"hand_adjoint": False} for name in ("ant", "humanoid")},
+}

@@ -113,6 +113,23 @@
 # (about 6 minutes: session 56's compiles took 15-30 s per forward, 50-120 s per update).
 # The tree that travels must stay under 64 MiB with .whl: session 56 carried mujoco_mjx's
 # wheel without its test_data/ folder (7.3 -> 0.7 MB; its RECORD lines for it dropped too).
+#
+# Session 75 (one H200, results/gpu/speed_session75, column `call`): three calls, each
+# processes' compiles side by side and every timed section alone under the lock:
+#   T=420 B=360 APG_TASKS=none ILD_TASKS="ant humanoid hopper walker2d reacher acrobot
+#     swimmer inverted_pendulum" ILD_ROWS=forward,ild_task ILD_BATCHES="32 360"
+#     ILD_SETS="ant:hand_adjoint=false humanoid:hand_adjoint=false"        (18 processes, 284 s)
+#   T=230 B=32 APG_TASKS=none ILD_TASKS=ant ILD_ROWS=forward,forward_lean,ild_task
+#     ILD_SETS="ant:saved_residuals=false ant:hand_adjoint=false ant:hinge_forces=false
+#     ant:substep_remat=false humanoid:hand_adjoint=false humanoid:rotary_joints=false" (139 s)
+#   T=175 B=360 APG_TASKS=none ILD_TASKS=ant ILD_ROWS=forward,ild_task
+#     ILD_SETS="ant:saved_residuals=false ant:hand_adjoint=false
+#     humanoid:saved_residuals=false"                                       (4 processes, 116 s)
+# The tree that travelled with .whl was 63.7 MB of the 64 MiB limit (mujoco_mjx's wheel
+# without test_data/, as session 56's).
+# Since session 75 ant and humanoid train on a GPU with hand_adjoint off (ILD's
+# PLATFORM_OVERRIDES): their ild_task row there is XLA's reverse mode, and
+# ILD_SETS="ant:hand_adjoint=true" times the hand-written VJPs.
 T=${T:-300} B=${B:-360} R=${R:-3}
 TASKS=${TASKS:-"hopper ant walker2d humanoid reacher acrobot swimmer"}
 ILD_ROWS=${ILD_ROWS:-forward,ild,ild_plain,chamfer} DOTS_TASKS=${DOTS_TASKS:-}
