@@ -13,7 +13,16 @@ It calls `paired.main` in this process, so it ran without the huge-page tunable 
 `python -m methods.ild.paired` re-executes itself with (the CSVs' `malloc_hugetlb` is
 empty): its seconds are slower than the other paired files', its ratios between variants
 are like for like. Session 74 ran it at commit d4c3cb8, humanoid on core 0 beside ant on
-core 1."""
+core 1.
+
+Session 75 ran it with 10 rounds (the optional third argument, ROUNDS; default 6) on ant
+alone, core 1, core 0 idle, with the tunable set by hand:
+
+    GLIBC_TUNABLES=glibc.malloc.hugetlb=1 taskset -c 1 python results/saved_residuals/which_set.py
+        ant results/saved_residuals/which_set_session75_alone_ant.csv 10
+
+Since session 74's task override the first two variants are the same config (an A/A pair:
+what the rounds' noise alone moves a median), the third adds to_world's residual."""
 import sys
 import jax
 from jax.ad_checkpoint import checkpoint_name
@@ -53,7 +62,8 @@ def compiled_chunk(task, cfg, setup):
 
 
 paired.compiled_chunk = compiled_chunk
-args = ["--task", sys.argv[1], "--rounds", "6", "--repeats", "8", "--apg-physics", "none",
+args = ["--task", sys.argv[1], "--rounds", sys.argv[3] if len(sys.argv) > 3 else "6",
+        "--repeats", "8", "--apg-physics", "none",
         "--forward", "--out", sys.argv[2]]
 for v in variants:
     args += ["--variant", v]
