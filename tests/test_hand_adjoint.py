@@ -559,8 +559,6 @@ def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint(
         build_config(ild, "ant", "cpu", {"hand_adjoint": "false", "saved_residuals": "true"})
 
 
-@pytest.mark.slow  # two compilations of ant's control-step VJP: about 2 minutes on one core
-
 def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
     """PLATFORM_OVERRIDES: on 'gpu' ant's and humanoid's config has hand_adjoint off and with
     it its pieces (hinge_forces, saved_residuals, rotary_joints), the rest of the task's
@@ -586,6 +584,8 @@ def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
             assert (build_config(ild, task, "cpu", platform="gpu")
                     == build_config(ild, task, "cpu", platform="cpu")), task
 
+
+@pytest.mark.slow  # two compilations of ant's control-step VJP: about 2 minutes on one core
 def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
     """One control step of ant (10 substeps, 8 envs, 10 steps after reset) through the step
     ILD trains with, with and without `saved_residuals`: the end state and the gradient of
