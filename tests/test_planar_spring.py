@@ -143,11 +143,10 @@ def test_spring_planar_adjoint_is_the_same_rollout_and_gradient(name):
     assert_same_rollout_gradient(name, {"planar_adjoint": False}, {"planar_adjoint": True})
 
 
-def assert_same_rollout_gradient(name: str, a: dict, b: dict, rel: float = 1e-5):
+def assert_same_rollout_gradient(name: str, a: dict, b: dict):
     """ILD's rollout loss and policy gradient over 16 steps of `name` (B = 8), its task's
-    config with the fields `a` and with `b` (`task_config`'s overrides): the same loss bit
-    for bit and every gradient leaf within `rel` of its largest entry, the gradient not all
-    zero."""
+    config with the fields `a` and with `b` (`task_config`'s overrides): the same loss bit for bit and every gradient leaf within
+    1e-5 of its largest entry, the gradient not all zero."""
     task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
     out = []
@@ -161,6 +160,6 @@ def assert_same_rollout_gradient(name: str, a: dict, b: dict, rel: float = 1e-5)
     assert float(got_l) == float(want_l)
     flat = jax.tree_util.tree_flatten_with_path(want)[0]
     for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
-        np.testing.assert_allclose(g, w, rtol=0, atol=rel * float(jnp.abs(w).max()),
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * float(jnp.abs(w).max()),
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0

@@ -284,16 +284,6 @@ class ILDConfig:
     rollout and gradient to float32 round-off (tests/test_planar_links.py); the update
     1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class;
     `PLANAR_LINKS_TASKS` turn it on. Needs `planar_adjoint`; positional tasks refuse it."""
-    spatial_links: bool = False
-    """On brax's spring backend, for a scene of a free root and hinges with contacts against
-    a plane (ant): the training rollouts' control step runs the task's own physics (with
-    `lean_substeps` and `hand_adjoint` as set; `substep_remat` has nothing left to act on)
-    and, in reverse mode, the VJP of brax's spring step written with every entry of every
-    vector an array over the links (`tasks.spatial_links.control_step`;
-    `tasks.core.with_spatial_adjoint`), in place of reverse mode through brax's arrays of
-    3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
-    (tests/test_spatial_links.py). Tasks with other joints (humanoid's 2- and 3-dof ones)
-    or backends refuse it. Off in the class; `SPATIAL_LINKS_TASKS` turn it on."""
     planar_normal_gravity: bool = False
     """With `planar_adjoint` on the positional backend: a scene whose gravity is along the
     normal of the plane its hinges turn in (reacher's, along its hinges) is differentiated
@@ -344,10 +334,6 @@ class ILDConfig:
                f"planar_adjoint differentiates brax's step through its planar form; {other} "
                f"rewrites another: set one of them False")
               for other in PLANAR_ADJOINT_EXCLUDES),
-            *((not (self.spatial_links and getattr(self, other)),
-               f"spatial_links differentiates brax's step through its form over the links; "
-               f"{other} rewrites another: set one of them False")
-              for other in PLANAR_ADJOINT_EXCLUDES + ("planar_adjoint",)),
             (self.planar_adjoint or not self.planar_links,
              "planar_links writes planar_adjoint's spring step over the links; set "
              "planar_adjoint True or planar_links False"),
