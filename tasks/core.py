@@ -523,6 +523,47 @@ def with_planar_adjoint(task: Task, links: bool = False,
     return _like(task, Task(spec=task.spec, env=env))
 
 
+def spatial_adjoint_refusal(task: Task) -> str | None:
+    """Why `with_spatial_adjoint` cannot differentiate `task` (None where it can): it is for
+    brax's spring step of a scene of free roots and hinges with contacts against a plane
+    (`tasks.spatial_links.spatial_scene`: ant)."""
+    backend = getattr(task.spec, "backend", None)
+    if backend != "spring" or not has_substep_loop(task):
+        return (f"task {task.name!r} runs {backend!r} physics; spatial_links differentiates "
+                "brax's spring step of a scene of a free root and hinges (ant): leave it "
+                "False")
+    from tasks.spatial_links import spatial_scene
+    scene = spatial_scene(task.env.unwrapped.sys)
+    if isinstance(scene, str):
+        return (f"task {task.name!r}: {scene}; spatial_links models a free root and hinges "
+                "(ant): leave it False")
+    return None
+
+
+def with_spatial_adjoint(task: Task) -> Task:
+    """A fresh copy of brax spring task `task` whose control step runs `task`'s own (brax's,
+    or a `with_lean_substeps` / `with_hand_adjoint` copy's: the same values) and, in reverse
+    mode, the VJP of `tasks.spatial_links.control_step` instead: brax's spring step with
+    every entry of every vector an array over the links, its derivative the same to float32
+    round-off (tests/test_spatial_links.py). As `with_planar_adjoint`, the step is a
+    function of the state's centre-of-mass frames and the action, and each step's backward
+    recomputes the step from its input. Errors for a task it does not fit
+    (`spatial_adjoint_refusal`)."""
+    why = spatial_adjoint_refusal(task)
+    if why is not None:
+        raise ValueError(why)
+    from tasks.planar import cotangent
+    from tasks.spatial_links import control_step, spatial_scene
+    env = build_env(task.spec)
+    inner, given = env.unwrapped, task.env.unwrapped
+    inner.sys, n_frames = given.sys, inner._n_frames
+    scene = spatial_scene(given.sys)
+    closed_form = lambda *a: control_step(scene, given.sys, *a, n_frames)  # noqa: E731
+    inner.pipeline_step = _step_with_adjoint(  # the task's own step: brax's or a rebuilt one
+        given.pipeline_step, ("x_i", "xd_i"), closed_form, cotangent)
+    return _like(task, Task(spec=task.spec, env=env))
+
+
 def with_small_dots(task: Task) -> Task:
     """A fresh copy of brax task `task` (same `sys`; composes with `without_joint_limits` and
     `with_substep_remat` copies) whose physics step computes its small matrix products as

@@ -40,6 +40,10 @@ def _lc(values):
     return float(a.flat[0]) if np.all(a == a.flat[0]) else a
 
 
+UNIT = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+"""The identity's rows, as `Links.unit_inertia` reads every link's inverse inertia."""
+
+
 def _lv(vectors):
     """Per-link vectors (tuples) as one tuple of `_lc` entries."""
     return tuple(_lc([v[i] for v in vectors]) for i in range(len(vectors[0])))
@@ -73,6 +77,10 @@ class Links:
     limit_stiffness: object  # zero where a link has no limit
     dof_turn: tuple          # per link, the dof whose force turns it
     dof_slides: tuple        # per link, its slides' dofs (-1 for a hinge)
+    full: bool = False       # every entry of a vector is live (a 3-D scene:
+                             # `tasks.spatial_links`), not only the x-z plane's
+    unit_inertia: bool = False  # every link's inverse inertia is the identity (brax's
+                                # spring_inertia_scale 1): R I R^T, written as I
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -136,25 +144,30 @@ def link_scene(sc: SpringScene) -> LinkScene:
         dof_turn=tuple(ln.dofs[ln.turn] if ln.root else ln.dofs[0] for ln in lns),
         dof_slides=tuple(tuple(ln.dofs[r] for r, _ in ln.slides) if ln.root else (-1, -1)
                          for ln in lns))
-    contacts = None
-    if sc.contacts:
-        cs = sc.contacts
-        to_contacts = np.zeros((num, len(cs)), np.float32)
-        for k, c in enumerate(cs):
-            to_contacts[c.link, k] = 1.0
-        entries = tuple(sorted({c.flat[1:] for c in cs}))
-        flat = np.zeros((len(entries) * num, len(cs)), np.float32)
-        for k, c in enumerate(cs):
-            flat[entries.index(c.flat[1:]) * num + c.flat[0], k] = 1.0
-        contacts = Contacts(
-            to_contacts=to_contacts, flat=flat, flat_entries=entries,
-            geom_pos=_lv([c.geom_pos for c in cs]), geom_rot=_lv([c.geom_rot for c in cs]),
-            half=_lc([c.half for c in cs]), radius=_lc([c.radius for c in cs]),
-            plane_pos=_lv([c.plane_pos for c in cs]), normal=_lv([c.normal for c in cs]),
-            friction=_lc([c.friction for c in cs]),
-            elasticity=_lc([c.elasticity for c in cs]),
-            inv_mass=_lc([1.0 / lns[c.link].mass for c in cs]))
+    contacts = contact_table(sc.contacts, [ln.mass for ln in lns], num)
     return LinkScene(scene=sc, links=links, contacts=contacts)
+
+
+def contact_table(cs, masses, num: int) -> Contacts | None:
+    """`tasks.planar_spring.Contact`s over the contacts (None where there are none), on
+    links whose masses (as brax divides by them) are `masses`."""
+    if not cs:
+        return None
+    to_contacts = np.zeros((num, len(cs)), np.float32)
+    for k, c in enumerate(cs):
+        to_contacts[c.link, k] = 1.0
+    entries = tuple(sorted({c.flat[1:] for c in cs}))
+    flat = np.zeros((len(entries) * num, len(cs)), np.float32)
+    for k, c in enumerate(cs):
+        flat[entries.index(c.flat[1:]) * num + c.flat[0], k] = 1.0
+    return Contacts(
+        to_contacts=to_contacts, flat=flat, flat_entries=entries,
+        geom_pos=_lv([c.geom_pos for c in cs]), geom_rot=_lv([c.geom_rot for c in cs]),
+        half=_lc([c.half for c in cs]), radius=_lc([c.radius for c in cs]),
+        plane_pos=_lv([c.plane_pos for c in cs]), normal=_lv([c.normal for c in cs]),
+        friction=_lc([c.friction for c in cs]),
+        elasticity=_lc([c.elasticity for c in cs]),
+        inv_mass=_lc([1.0 / masses[c.link] for c in cs]))
 
 
 # ----------------------------------------------------------------------------------------
@@ -162,20 +175,42 @@ def link_scene(sc: SpringScene) -> LinkScene:
 # ----------------------------------------------------------------------------------------
 
 
-def _select(vectors, matrix):
+def _select(vectors, matrix, unstack: bool = False):
     """Each of `vectors` (tuples of entries over the rows of `matrix`) times `matrix`: its
     entries over the columns, one product for all of them; a constant entry stays the
     constant it is only where every column selects exactly one row (else it is scaled by
-    the column's count)."""
+    the column's count). `unstack`: the product's rows are read by `_unstack` (the same
+    values and cotangents; a 3-D scene's, `Links.full`)."""
     live = [a for v in vectors for a in v if not isinstance(a, float)]
     counts = matrix.sum(axis=0)
-    out_live = iter(jnp.stack([jnp.broadcast_to(a, (matrix.shape[0],)) for a in live])
-                    @ matrix if live else ())
+    product = (jnp.stack([jnp.broadcast_to(a, (matrix.shape[0],)) for a in live]) @ matrix
+               if live else None)
+    out_live = iter(() if product is None else _unstack(product) if unstack else product)
     out = []
     for v in vectors:
         out.append(tuple((next(out_live) if not isinstance(a, float)
                           else (a if _is(a, 0.0) else _lc(a * counts))) for a in v))
     return out
+
+
+@jax.custom_vjp
+def _unstack(a):
+    """The rows of `a`, whose cotangent is their cotangents stacked (a concatenation) rather
+    than reverse mode's sum of one padded row each, which XLA's CPU backend fused into one
+    loop that evaluates every row's cotangent for every entry (session 76: 63% of ant's
+    control-step VJP in the parent product's, 0.23 us per entry)."""
+    return tuple(a[k] for k in range(a.shape[0]))
+
+
+def _unstack_fwd(a):
+    return _unstack(a), None
+
+
+def _unstack_bwd(_, cts):
+    return (jnp.stack(cts),)
+
+
+_unstack.defvjp(_unstack_fwd, _unstack_bwd)
 
 
 # ----------------------------------------------------------------------------------------
@@ -189,7 +224,7 @@ def _to_world(lk: Links, x_i, xd_i):
 
 
 def _world_to_joint(lk: Links, x, xd):
-    pos_p, rot_p, vel_p, ang_p = _select([x[0], x[1], xd[0], xd[1]], lk.parent)
+    pos_p, rot_p, vel_p, ang_p = _select([x[0], x[1], xd[0], xd[1]], lk.parent, lk.full)
     rot_p = (add(rot_p[0], lk.root), *rot_p[1:])  # the world: the identity
     return joint_frames(lk, (pos_p, rot_p), (vel_p, ang_p), x, xd)
 
@@ -232,10 +267,10 @@ def _to_links(lk: Links, ang, vel, jw, x_i):
     _, _, a_p, a_c = jw
     vel, ang = rotate(vel, a_p[1]), rotate(ang, a_p[1])
     own = vadd(ang, cross(vsub(a_c[0], x_i[0]), vel))
-    (pos_p,) = _select([x_i[0]], lk.parent)
+    (pos_p,) = _select([x_i[0]], lk.parent, lk.full)
     moved = vadd(ang, cross(vsub(a_p[0], pos_p), vel))
     to_parent = lk.parent.T
-    back_ang, back_vel = _select([moved, vel], to_parent)
+    back_ang, back_vel = _select([moved, vel], to_parent, lk.full)
     return vsub(own, back_ang), vsub(vel, back_vel)
 
 
@@ -245,6 +280,8 @@ def _flat(cs: Contacts, i_inv, num: int):
     rows = [i_inv[r][c] for r, c in cs.flat_entries]
     if all(_is(a, 0.0) for a in rows):
         return 0.0
+    if all(isinstance(a, float) for a in rows):  # the same on every link: per contact's entry
+        return _lc([rows[e] for e in cs.flat.argmax(axis=0) // num])
     like = next(a for a in rows if not isinstance(a, float))
     stacked = jnp.concatenate([jnp.broadcast_to(jnp.asarray(a, like.dtype), (num,))
                                for a in rows])
@@ -255,7 +292,7 @@ def _collisions(ls: LinkScene, x, x_i, xd_i, i_inv):
     """`tasks.planar_spring.collisions` over the contacts, summed over each link's."""
     lk, c, sc = ls.links, ls.contacts, ls.scene
     pos, rot, pos_i, vel_i, ang_i = _select([x[0], x[1], x_i[0], xd_i[0], xd_i[1]],
-                                            c.to_contacts)
+                                            c.to_contacts, lk.full)
     centre = vadd(pos, rotate(c.geom_pos, rot))
     axis = z_axis(quat_mul(rot, c.geom_rot))
     end = vadd(centre, vscale(c.half, axis))
@@ -278,7 +315,8 @@ def _collisions(ls: LinkScene, x, x_i, xd_i, i_inv):
     apply_d = apply_n * (speed > 1e-3)
     f = vadd(vscale(mul(impulse, apply_n), nn), vscale(mul(neg(impulse_d), apply_d), dir_d))
     p = tuple(neg(a) for a in f)              # the link is the contact's second body
-    vel, ang_p, (n,) = _select([p, cross(rel_pos, p), (apply_n,)], c.to_contacts.T)
+    vel, ang_p, (n,) = _select([p, cross(rel_pos, p), (apply_n,)], c.to_contacts.T,
+                                 lk.full)
     scale = n + 1e-8
     vel, ang_p = tuple(div(a, scale) for a in vel), tuple(div(a, scale) for a in ang_p)
     return tuple(div(a, lk.mass) for a in vel), matvec(i_inv, ang_p)
@@ -290,7 +328,7 @@ def substep(ls: LinkScene, x_i, xd_i, tau):
     lk, sc = ls.links, ls.scene
     x, xd = _to_world(lk, x_i, xd_i)
     jw = _world_to_joint(lk, x, xd)
-    i_inv = inv_inertia(lk, x[1])
+    i_inv = UNIT if lk.unit_inertia else inv_inertia(lk, x[1])
     f_ang, f_vel = _to_links(lk, *_joint_force(lk, tau, jw[0], jw[1]), jw, x_i)
     xd_i = (vadd(xd_i[0], vscale(sc.dt, vadd(sc.gravity, tuple(div(a, lk.mass)
                                                                 for a in f_vel)))),
@@ -300,8 +338,27 @@ def substep(ls: LinkScene, x_i, xd_i, tau):
     return x_i, xd_i
 
 
-def _read(a, kind: str):
-    """Every link's row of a brax array, entry by entry over the links (`in_plane`)."""
+def _scanned_substeps(ls: LinkScene, t, tau, n_frames: int):
+    """`n_frames` substeps of a 3-D scene (`Links.full`, every entry an array) as a scan of
+    one checkpointed substep whose carry is the entries themselves: no arrays between
+    substeps to stack and read back, whose cotangents XLA's CPU backend sums from padded
+    entries in loops that recompute every entry per element, and no fusion across substeps
+    (what the planar step's optimization barrier is for; on ant the compiled program kept
+    no barrier). The backward stores each substep's input entries and recomputes the
+    substep. Session 76, ant at B = 32, one core: one control step's value and VJP 0.43x
+    the trained step's, against 0.69-0.80x with the substeps unrolled through arrays
+    (`results/spatial_links/step_vjp.py`); the update 1.41x faster paired."""
+    def body(carry, _):
+        return substep(ls, *carry, tau), None
+    return jax.lax.scan(jax.checkpoint(body, prevent_cse=False), t, None,
+                        length=n_frames)[0]
+
+
+def _read(a, kind: str, full: bool = False):
+    """Every link's row of a brax array, entry by entry over the links: its in-plane
+    entries (`in_plane`), or all of them where `full`."""
+    if full:
+        return tuple(a[:, k] for k in range(a.shape[-1]))
     return in_plane(lambda k: a[:, k], kind)
 
 
@@ -311,22 +368,26 @@ def _write(t, num: int, dtype):
 
 def control_step(ls: LinkScene, sys, x_i, xd_i, act: jax.Array, n_frames: int):
     """`tasks.planar_spring.control_step`, every link at once: the same outputs (the
-    state's frames in `tasks.planar.OUTPUTS` order, q, qd) to float32 round-off. Between
-    substeps the frames go through arrays and an optimization barrier, as there: without
+    state's frames in `tasks.planar.OUTPUTS` order, q, qd) to float32 round-off. A 3-D
+    scene's substeps are a scan (`_scanned_substeps`). A planar scene's are unrolled, and
+    between them the frames go through arrays and an optimization barrier, as there: without
     it one control step's value and VJP at B = 32 cost 1.13 ms on hopper and 2.46 ms on
     walker2d, 1.45x and 1.22x the per-link step's; with it 0.49 ms and 1.06 ms, 0.74x and
     0.49x the per-link step's (session 70, one core)."""
     dtype, num = x_i.pos.dtype, ls.links.num
     tau = joint_torques(ls.scene, act)
-    t = ((_read(x_i.pos, "pos"), _read(x_i.rot, "rot")),
-         (_read(xd_i.vel, "vel"), _read(xd_i.ang, "ang")))
+    full = ls.links.full
+    t = ((_read(x_i.pos, "pos", full), _read(x_i.rot, "rot", full)),
+         (_read(xd_i.vel, "vel", full), _read(xd_i.ang, "ang", full)))
+    if full:  # a 3-D scene: its substeps scanned (`_scanned_substeps`)
+        t, n_frames = _scanned_substeps(ls, t, tau, n_frames), 0
     for _ in range(n_frames):
         t = substep(ls, *t, tau)
         arrays = jax.lax.optimization_barrier(
             (_write(t[0][0], num, dtype), _write(t[0][1], num, dtype),
              _write(t[1][0], num, dtype), _write(t[1][1], num, dtype)))
-        t = ((_read(arrays[0], "pos"), _read(arrays[1], "rot")),
-             (_read(arrays[2], "vel"), _read(arrays[3], "ang")))
+        t = ((_read(arrays[0], "pos", full), _read(arrays[1], "rot", full)),
+             (_read(arrays[2], "vel", full), _read(arrays[3], "ang", full)))
     x_i, xd_i = t
     x, xd = _to_world(ls.links, x_i, xd_i)
     j, jd, a_p, a_c = _world_to_joint(ls.links, x, xd)

@@ -107,10 +107,12 @@ class SpringScene:
     num_dofs: int
 
 
-def _contacts(sys):
+def _contacts(sys, spheres: bool = False):
     """The scene's contacts as `Contact`s, or why they are not (a string): every pair a
     plane fixed in the world (geom 1) against a capsule on a link (geom 2), two contacts
-    per pair as MJX's `plane_capsule` makes them."""
+    per pair as MJX's `plane_capsule` makes them, or where `spheres` also a sphere on a
+    link, one contact as MJX's `plane_sphere` makes it (a capsule end with no half-length:
+    `half` 0.0, which the algebra folds away)."""
     from brax import contact
     from mujoco import mjx
     c = contact.get(sys, Transform.zero((sys.num_links(),)))
@@ -120,27 +122,50 @@ def _contacts(sys):
     body = np.asarray(sys.geom_bodyid)
     types = np.asarray(sys.geom_type)
     plane, capsule = int(mjx.GeomType.PLANE), int(mjx.GeomType.CAPSULE)
+    shapes = (capsule, int(mjx.GeomType.SPHERE)) if spheres else (capsule,)
     if np.any(types[g1] != plane) or np.any(body[g1] != 0):
         return "it has contacts other than against a plane fixed in the world"
-    if np.any(types[g2] != capsule) or np.any(body[g2] == 0):
-        return "it has contacts of shapes other than capsules on its links"
-    if len(g1) % 2 or np.any(g1[0::2] != g1[1::2]) or np.any(g2[0::2] != g2[1::2]):
-        return "its contacts do not come in one pair per capsule end"
+    if np.any(~np.isin(types[g2], shapes)) or np.any(body[g2] == 0):
+        return ("it has contacts of shapes other than capsules" +
+                (" and spheres" if spheres else "") + " on its links")
+    halves, k = [], 0
+    while k < len(g2):  # a capsule's two ends, or a sphere
+        if types[g2[k]] != capsule:
+            halves.append(0.0)
+            k += 1
+            continue
+        if k + 1 == len(g2) or g1[k] != g1[k + 1] or g2[k] != g2[k + 1]:
+            return "its contacts do not come in one pair per capsule end"
+        half = _f32(sys.geom_size[g2[k]][1])
+        halves += [half, -half]
+        k += 2
     n_links = sys.num_links()
     out = []
     for k, (a, b) in enumerate(zip(g1, g2)):
         link = int(body[b]) - 1
         normal = np.asarray(math.quat_to_3x3(jnp.asarray(sys.geom_quat[a])))[:, 2]
         flat = np.unravel_index(link, (n_links, 3, 3))
-        half = float(np.float32(sys.geom_size[b][1]))
         out.append(Contact(
             link=link, geom_pos=_const(sys.geom_pos[b]), geom_rot=_const(sys.geom_quat[b]),
-            half=_f32(half if k % 2 == 0 else -half), radius=_f32(sys.geom_size[b][0]),
+            half=halves[k], radius=_f32(sys.geom_size[b][0]),
             plane_pos=_const(sys.geom_pos[a]), normal=_const(normal),
             friction=_f32(np.asarray(c.friction)[k, 0]),
             elasticity=_f32(np.asarray(c.elasticity)[k]),
             flat=tuple(int(i) for i in flat)))
     return tuple(out)
+
+
+def spring_constants(sys) -> tuple:
+    """(mass, i_diag, lo, hi): each link's mass and inertia diagonal as brax's spring step
+    scales them (m ** (1 - spring_mass_scale), diag(I) ** (1 - spring_inertia_scale)), and
+    each dof's limits (infinite where the scene has none), float32."""
+    msc, isc = float(sys.spring_mass_scale), float(sys.spring_inertia_scale)
+    mass = np.asarray(sys.link.inertia.mass, np.float32) ** np.float32(1 - msc)
+    i_diag = (np.diagonal(np.asarray(sys.link.inertia.i, np.float32), axis1=1, axis2=2)
+              ** np.float32(1 - isc))
+    lo, hi = ((np.asarray(a, np.float32) for a in sys.dof.limit) if sys.dof.limit is not None
+              else (np.full(sys.qd_size(), -np.inf), np.full(sys.qd_size(), np.inf)))
+    return mass, i_diag, lo, hi
 
 
 def spring_scene(sys) -> SpringScene | str:
@@ -169,12 +194,7 @@ def spring_scene(sys) -> SpringScene | str:
     contacts = _contacts(sys)
     if isinstance(contacts, str):
         return contacts
-    msc, isc = float(sys.spring_mass_scale), float(sys.spring_inertia_scale)
-    mass = np.asarray(sys.link.inertia.mass, np.float32) ** np.float32(1 - msc)
-    i_diag = (np.diagonal(np.asarray(sys.link.inertia.i, np.float32), axis1=1, axis2=2)
-              ** np.float32(1 - isc))
-    lo, hi = ((np.asarray(a, np.float32) for a in sys.dof.limit) if sys.dof.limit is not None
-              else (np.full(sys.qd_size(), -np.inf), np.full(sys.qd_size(), np.inf)))
+    mass, i_diag, lo, hi = spring_constants(sys)
     link_of_dof = np.asarray(sys.dof_link())
     links = []
     for i, typ in enumerate(sys.link_types):

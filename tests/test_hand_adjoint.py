@@ -479,7 +479,7 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     assert set(ROTARY_JOINTS_TASKS) == rotary == {"humanoid"} == {
         name for name in allowed if rotary_joints(make_task(name).env.unwrapped.sys)}
     ild = get_method("ild")
-    ant = build_config(ild, "ant", "cpu", {})
+    ant = build_config(ild, "ant", "cpu", {}, platform="cpu")  # a GPU's has it off
     assert ant.hand_adjoint and ant.hinge_forces and ant.lean_substeps and ant.num_envs == 32
     reacher = build_config(ild, "reacher", "cpu", {})
     assert reacher.hand_adjoint is False and reacher.hinge_forces is False
@@ -548,9 +548,10 @@ def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint(
                   if over.get("saved_residuals")) == ["ant", "humanoid"]
     ild = get_method("ild")
     for task in SAVED_RESIDUALS_TASKS:
-        on = build_config(ild, task, "cpu", {})
+        on = build_config(ild, task, "cpu", {}, platform="cpu")  # a GPU's has it off
         assert on.saved_residuals and on.hand_adjoint and on.substep_remat
-        assert not build_config(ild, task, "cpu", {"saved_residuals": "false"}).saved_residuals
+        assert not build_config(ild, task, "cpu", {"saved_residuals": "false"},
+                                platform="cpu").saved_residuals
         off = build_config(ild, task, "cpu", {"hand_adjoint": "false"})
         assert not off.saved_residuals and not off.hand_adjoint
     assert not build_config(ild, "hopper", "cpu", {}).saved_residuals
@@ -561,24 +562,27 @@ def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint(
 
 def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
     """PLATFORM_OVERRIDES: on 'gpu' ant's and humanoid's config has hand_adjoint off and with
-    it its pieces (hinge_forces, saved_residuals, rotary_joints), the rest of the task's
-    overrides kept; on 'cpu' the pieces stay on; `--set hand_adjoint=true` on a GPU brings them
-    back; every other task's config is the same on both platforms."""
+    it its pieces (hinge_forces, saved_residuals, rotary_joints), and ant's spatial_links
+    off, the rest of the task's overrides kept; on 'cpu' they stay on; `--set
+    hand_adjoint=true` on a GPU brings the pieces back; every other task's config is the
+    same on both platforms."""
     import dataclasses as dc
 
     from bench.plugins import build_config, get_method
     from methods.ild.config import TASK_OVERRIDES
     ild = get_method("ild")
-    for task, pieces in (("ant", ("hinge_forces", "saved_residuals")),
-                         ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"))):
+    for task, pieces, also in (
+            ("ant", ("hinge_forces", "saved_residuals"), ("spatial_links",)),
+            ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"), ())):
         cpu = build_config(ild, task, "paper", platform="cpu")
         gpu = build_config(ild, task, "paper", platform="gpu")
-        assert cpu.hand_adjoint and all(getattr(cpu, f) for f in pieces)
-        assert not gpu.hand_adjoint and not any(getattr(gpu, f) for f in pieces)
+        assert cpu.hand_adjoint and all(getattr(cpu, f) for f in pieces + also)
+        assert not gpu.hand_adjoint and not any(getattr(gpu, f) for f in pieces + also)
         assert gpu.lean_substeps and gpu.substep_remat and gpu.num_envs == 360
-        assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces}) == cpu
+        assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces + also}) == cpu
         back = build_config(ild, task, "paper", {"hand_adjoint": "true"}, platform="gpu")
-        assert back == cpu
+        assert back == dc.replace(cpu, **{f: False for f in also})  # ant's spatial_links
+        # (CPU-measured, session 76) stays off on a GPU
     for task in TASK_OVERRIDES:
         if task not in ("ant", "humanoid"):
             assert (build_config(ild, task, "cpu", platform="gpu")
@@ -596,7 +600,8 @@ def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
     task, ps, act = _states("ant")
     got = []
     for on in (False, True):
-        cfg = task_config("ant", 8, {"saved_residuals": on})
+        # hand_adjoint named: a GPU's ant config has it off (PLATFORM_OVERRIDES)
+        cfg = task_config("ant", 8, {"hand_adjoint": True, "saved_residuals": on})
         assert cfg.hand_adjoint and cfg.substep_remat and cfg.saved_residuals is on
         got.append(_step_and_vjp(rollout_physics(task, cfg).env.unwrapped.pipeline_step, ps,
                                  act))

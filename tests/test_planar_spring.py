@@ -88,18 +88,22 @@ def _consistent(sys, ps, x_i, xd_i):
                       qd=qd, i_inv=com.inv_inertia(sys, x))
 
 
-def _control_steps(name: str):
-    """(trained, ours, args): one control step of 8 envs of `name` 15 steps after reset
-    (hopper's foot on the floor in half of them), as functions of (x_i, xd_i, action)
-    returning `control_step`'s outputs: the step ILD trains with (its config without
-    planar_adjoint: hand_adjoint's spring substep, lean substeps) with the state's other
-    fields computed from x_i, xd_i, and the planar form."""
-    task, ps, act = _states(name, steps=15)
-    cfg = task_config(name, 8, {"planar_adjoint": False})
+def _control_steps(name: str, form=None, without: str = "planar_adjoint", batch: int = 8):
+    """(trained, ours, args, dist): one control step of `batch` envs of `name` 15 steps
+    after reset (hopper's foot on the floor in half of them), as functions of (x_i, xd_i,
+    action) returning `control_step`'s outputs: the step ILD trains with (its config
+    without the field `without`: hand_adjoint's spring substep, lean substeps) with the
+    state's other fields computed from x_i, xd_i, and the form `form(sys, n_frames)` returns
+    for one env (the planar form where None), vmapped; `dist`, the contacts' distances."""
+    task, ps, act = _states(name, batch=batch, steps=15)
+    cfg = task_config(name, batch, {without: False})
     env = rollout_physics(task, cfg).env.unwrapped
     sys, n = env.sys, env._n_frames
-    sc = planar_spring.spring_scene(sys)
-    ours = jax.vmap(lambda xi, xdi, a: planar_spring.control_step(sc, sys, xi, xdi, a, n))
+    if form is None:
+        sc = planar_spring.spring_scene(sys)
+        form = lambda sys, n: (lambda xi, xdi, a: planar_spring.control_step(  # noqa: E731
+            sc, sys, xi, xdi, a, n))
+    ours = jax.vmap(form(sys, n))
 
     def trained(xi, xdi, a):
         step = lambda p_, xi_, xdi_, a_: env.pipeline_step(  # noqa: E731
@@ -143,10 +147,11 @@ def test_spring_planar_adjoint_is_the_same_rollout_and_gradient(name):
     assert_same_rollout_gradient(name, {"planar_adjoint": False}, {"planar_adjoint": True})
 
 
-def assert_same_rollout_gradient(name: str, a: dict, b: dict):
+def assert_same_rollout_gradient(name: str, a: dict, b: dict, rel: float = 1e-5):
     """ILD's rollout loss and policy gradient over 16 steps of `name` (B = 8), its task's
-    config with the fields `a` and with `b` (`task_config`'s overrides): the same loss bit for bit and every gradient leaf within
-    1e-5 of its largest entry, the gradient not all zero."""
+    config with the fields `a` and with `b` (`task_config`'s overrides): the same loss bit
+    for bit and every gradient leaf within `rel` of its largest entry, the gradient not all
+    zero."""
     task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
     out = []
@@ -160,6 +165,6 @@ def assert_same_rollout_gradient(name: str, a: dict, b: dict):
     assert float(got_l) == float(want_l)
     flat = jax.tree_util.tree_flatten_with_path(want)[0]
     for (path, w), g in zip(flat, jax.tree_util.tree_leaves(got)):
-        np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * float(jnp.abs(w).max()),
+        np.testing.assert_allclose(g, w, rtol=0, atol=rel * float(jnp.abs(w).max()),
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(want["net"]["params"]["hidden_1"]["kernel"]).sum()) > 0

@@ -132,11 +132,12 @@ def test_a_task_override_goes_with_the_field_it_requires():
     assert build_config(spec, "u", None, {"piece": "true"}) == Cfg(False, True, 1.0)
 
 
-def test_platform_overrides_sit_between_the_tasks_and_the_preset():
+def test_platform_overrides_sit_between_the_tasks_and_the_preset(monkeypatch):
     """`MethodSpec.platform_overrides`: the platform's per-task fields win over the task's,
     lose to a preset's and the user's; one that turns a needed field off takes the task's
     dependent field along; another platform or task sees none of them; without `platform`
-    build_config reads `current_platform()` (CPU here)."""
+    build_config reads `current_platform()` (JAX's default backend: as on a GPU machine
+    when it says 'gpu')."""
     spec = MethodSpec(name="toy", train=lambda *a: None, config_cls=Cfg, uses=Uses(),
                       presets={"fast": {"lr": 5.0}},
                       task_overrides={"t": {"rewrite": True, "piece": True, "lr": 2.0}},
@@ -148,8 +149,11 @@ def test_platform_overrides_sit_between_the_tasks_and_the_preset():
     assert build_config(spec, "t", None, {"rewrite": "true"}, platform="gpu"
                         ) == Cfg(True, True, 3.0)  # the user's rewrite keeps the task's piece
     assert build_config(spec, "u", platform="gpu") == Cfg(False, False, 1.0)
-    assert plugins.current_platform() == "cpu"
-    assert build_config(spec, "t") == Cfg(True, True, 2.0)
+    import jax
+    assert plugins.current_platform() == jax.default_backend()
+    for here, want in (("cpu", Cfg(True, True, 2.0)), ("gpu", Cfg(False, False, 3.0))):
+        monkeypatch.setattr(plugins, "current_platform", lambda here=here: here)
+        assert build_config(spec, "t") == want, here
     typo = dataclasses.replace(spec, name="toy_typo",
                                platform_overrides={"gpu": {"t": {"rewrit": False}}})
     with pytest.raises(ConfigError, match=r"platform_overrides\['gpu'\]\['t'\] names no "

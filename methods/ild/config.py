@@ -284,6 +284,17 @@ class ILDConfig:
     rollout and gradient to float32 round-off (tests/test_planar_links.py); the update
     1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class;
     `PLANAR_LINKS_TASKS` turn it on. Needs `planar_adjoint`; positional tasks refuse it."""
+    spatial_links: bool = False
+    """On brax's spring backend, for a scene of a free root and hinges with contacts against
+    a plane (ant): the training rollouts' control step runs the task's own physics (with
+    `lean_substeps` and `hand_adjoint` as set; `substep_remat` has nothing left to act on)
+    and, in reverse mode, the VJP of brax's spring step written with every entry of every
+    vector an array over the links (`tasks.spatial_links.control_step`;
+    `tasks.core.with_spatial_adjoint`), in place of reverse mode through brax's arrays of
+    3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
+    (tests/test_spatial_links.py); ant's update 1.41x faster, paired (session 76). Tasks
+    with other joints (humanoid's 2- and 3-dof ones) or backends refuse it. Off in the
+    class; `SPATIAL_LINKS_TASKS` turn it on (on a CPU: `PLATFORM_OVERRIDES`)."""
     planar_normal_gravity: bool = False
     """With `planar_adjoint` on the positional backend: a scene whose gravity is along the
     normal of the plane its hinges turn in (reacher's, along its hinges) is differentiated
@@ -334,6 +345,10 @@ class ILDConfig:
                f"planar_adjoint differentiates brax's step through its planar form; {other} "
                f"rewrites another: set one of them False")
               for other in PLANAR_ADJOINT_EXCLUDES),
+            *((not (self.spatial_links and getattr(self, other)),
+               f"spatial_links differentiates brax's step through its form over the links; "
+               f"{other} rewrites another: set one of them False")
+              for other in PLANAR_ADJOINT_EXCLUDES + ("planar_adjoint",)),
             (self.planar_adjoint or not self.planar_links,
              "planar_links writes planar_adjoint's spring step over the links; set "
              "planar_adjoint True or planar_links False"),
@@ -522,6 +537,17 @@ _merge_overrides(PLANAR_LINKS_TASKS, planar_links=True)
 SAVED_RESIDUALS_TASKS = ("ant", "humanoid")
 _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 
+# ant's spring step with every link at once in 3-D (session 76, `tasks.spatial_links`), its
+# substeps a scan of one checkpointed substep: the same rollout, its gradient the same to
+# float32 round-off (tests/test_spatial_links.py: 1.25e-5 of each leaf's largest entry over
+# 16 steps); one core, B = 32, paired against the same update with hand_adjoint's backward
+# (results/spatial_links/paired_session76_scan_ant.csv): 1.41x faster, update / forward
+# 3.22x -> 2.19x (every round under 3x). ant's 3- and 10-minute ILD cells were recorded
+# before it. Not timed on a GPU, where ant trains through XLA's reverse mode
+# (PLATFORM_OVERRIDES below turn it off there).
+SPATIAL_LINKS_TASKS = ("ant",)
+_merge_overrides(SPATIAL_LINKS_TASKS, spatial_links=True)
+
 # On a GPU, ant and humanoid differentiate brax's spring substep by XLA's reverse mode
 # (`hand_adjoint` off, which takes its pieces `hinge_forces`, `saved_residuals` and
 # `rotary_joints` along: `MethodSpec.requires`). The hand-written VJPs were tuned on one CPU
@@ -532,7 +558,9 @@ _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 # calls) against 0.4667 / 0.4105 s without, humanoid 0.6089 s against 0.5639 s, ant at
 # B = 32 0.4457 s against 0.3849 s; session 56 saw humanoid's 8% the same way in two calls
 # (ant's flipped there). The gradient is the same to float32 round-off either way, so this is
-# a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back.
+# a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back. ant's
+# `spatial_links` (session 76, CPU-measured) is off there too.
 PLATFORM_OVERRIDES: dict[str, dict[str, dict]] = {
-    "gpu": {name: {"hand_adjoint": False} for name in ("ant", "humanoid")},
+    "gpu": {"ant": {"hand_adjoint": False, "spatial_links": False},
+            "humanoid": {"hand_adjoint": False}},
 }

@@ -22,7 +22,8 @@ from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
 from tasks.core import (has_substep_loop, with_closed_form_adjoint, with_hand_adjoint,
                         with_lean_substeps, with_planar_adjoint, with_positional_joints,
-                        with_small_dots, with_substep_remat, without_joint_limits)
+                        with_small_dots, with_spatial_adjoint, with_substep_remat,
+                        without_joint_limits)
 
 
 @flax.struct.dataclass
@@ -306,14 +307,16 @@ def rollout_physics(task, config: ILDConfig):
     with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`) or brax's
     positional substep for hinges and slides (`positional_joints`), and/or
     with small matrix products as multiply-and-sum, or differentiated through its
-    closed-form step (`closed_form_adjoint`) or its planar form (`planar_adjoint`; over all
-    links at once with `planar_links`), as configured."""
+    closed-form step (`closed_form_adjoint`), its planar form (`planar_adjoint`; over all
+    links at once with `planar_links`) or its form over the links in 3-D (`spatial_links`),
+    as configured."""
     if not config.joint_limits:
         task = without_joint_limits(task)
     if config.closed_form_adjoint:  # its backward never reads brax's substeps
         return with_closed_form_adjoint(task)
-    # planar_adjoint's backward never reads brax's substeps: nothing to checkpoint
-    remat = config.substep_remat and not config.planar_adjoint
+    # planar_adjoint's and spatial_links' backwards never read brax's substeps: nothing to
+    # checkpoint
+    remat = config.substep_remat and not (config.planar_adjoint or config.spatial_links)
     if config.hand_adjoint:
         task = with_hand_adjoint(task, remat=remat, lean=config.lean_substeps,
                                  hinges=config.hinge_forces, planar=config.planar_root,
@@ -330,6 +333,8 @@ def rollout_physics(task, config: ILDConfig):
     if config.planar_adjoint:  # the forward built above, differentiated through the plane
         task = with_planar_adjoint(task, links=config.planar_links,
                                    drop_normal_gravity=config.planar_normal_gravity)
+    if config.spatial_links:  # the same, through the step over the links in 3-D
+        task = with_spatial_adjoint(task)
     return task
 
 
