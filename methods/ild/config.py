@@ -294,7 +294,7 @@ class ILDConfig:
     3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
     (tests/test_spatial_links.py); ant's update 1.41x faster, paired (session 76). Tasks
     with other joints (humanoid's 2- and 3-dof ones) or backends refuse it. Off in the
-    class; `SPATIAL_LINKS_TASKS` turn it on (on a CPU: `PLATFORM_OVERRIDES`)."""
+    class; `SPATIAL_LINKS_TASKS` turn it on, and on a GPU `PLATFORM_OVERRIDES` off."""
     planar_normal_gravity: bool = False
     """With `planar_adjoint` on the positional backend: a scene whose gravity is along the
     normal of the plane its hinges turn in (reacher's, along its hinges) is differentiated
@@ -540,7 +540,7 @@ _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 # ant's spring step with every link at once in 3-D (session 76, `tasks.spatial_links`), its
 # substeps a scan of one checkpointed substep: the same rollout, its gradient the same to
 # float32 round-off (tests/test_spatial_links.py: 1.25e-5 of each leaf's largest entry over
-# 16 steps); one core, B = 32, paired against the same update with hand_adjoint's backward
+# 16 steps, measured on its first, unrolled form); one core, B = 32, paired against the same update with hand_adjoint's backward
 # (results/spatial_links/paired_session76_scan_ant.csv): 1.41x faster, update / forward
 # 3.22x -> 2.19x (every round under 3x). ant's 3- and 10-minute ILD cells were recorded
 # before it. Not timed on a GPU, where ant trains through XLA's reverse mode
