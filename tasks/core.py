@@ -527,6 +527,13 @@ def spatial_adjoint_refusal(task: Task) -> str | None:
     """Why `with_spatial_adjoint` cannot differentiate `task` (None where it can): it is for
     brax's spring step of a scene of free roots and hinges with contacts against a plane
     (`tasks.spatial_links.spatial_scene`: ant)."""
+    scene = _spatial_scene(task)
+    return scene if isinstance(scene, str) else None
+
+
+def _spatial_scene(task: Task):
+    """`tasks.spatial_links.spatial_scene` of `task`, or why `with_spatial_adjoint` cannot
+    differentiate it (a string naming the task and the fix)."""
     backend = getattr(task.spec, "backend", None)
     if backend != "spring" or not has_substep_loop(task):
         return (f"task {task.name!r} runs {backend!r} physics; spatial_links differentiates "
@@ -537,7 +544,7 @@ def spatial_adjoint_refusal(task: Task) -> str | None:
     if isinstance(scene, str):
         return (f"task {task.name!r}: {scene}; spatial_links models a free root and hinges "
                 "(ant): leave it False")
-    return None
+    return scene
 
 
 def with_spatial_adjoint(task: Task) -> Task:
@@ -549,15 +556,14 @@ def with_spatial_adjoint(task: Task) -> Task:
     function of the state's centre-of-mass frames and the action, and each step's backward
     recomputes the step from its input. Errors for a task it does not fit
     (`spatial_adjoint_refusal`)."""
-    why = spatial_adjoint_refusal(task)
-    if why is not None:
-        raise ValueError(why)
+    scene = _spatial_scene(task)  # read once: it traces brax's contacts
+    if isinstance(scene, str):
+        raise ValueError(scene)
     from tasks.planar import cotangent
-    from tasks.spatial_links import control_step, spatial_scene
+    from tasks.spatial_links import control_step
     env = build_env(task.spec)
     inner, given = env.unwrapped, task.env.unwrapped
     inner.sys, n_frames = given.sys, inner._n_frames
-    scene = spatial_scene(given.sys)
     closed_form = lambda *a: control_step(scene, given.sys, *a, n_frames)  # noqa: E731
     inner.pipeline_step = _step_with_adjoint(  # the task's own step: brax's or a rebuilt one
         given.pipeline_step, ("x_i", "xd_i"), closed_form, cotangent)
