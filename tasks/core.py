@@ -525,8 +525,9 @@ def with_planar_adjoint(task: Task, links: bool = False,
 
 def spatial_adjoint_refusal(task: Task) -> str | None:
     """Why `with_spatial_adjoint` cannot differentiate `task` (None where it can): it is for
-    brax's spring step of a scene of free roots and hinges with contacts against a plane
-    (`tasks.spatial_links.spatial_scene`: ant)."""
+    brax's spring step of a scene of free roots and joints that only turn (hinges, 2- and
+    3-dof) with contacts against a plane (`tasks.spatial_links.spatial_scene`: ant,
+    humanoid)."""
     scene = _spatial_scene(task)
     return scene if isinstance(scene, str) else None
 
@@ -537,13 +538,13 @@ def _spatial_scene(task: Task):
     backend = getattr(task.spec, "backend", None)
     if backend != "spring" or not has_substep_loop(task):
         return (f"task {task.name!r} runs {backend!r} physics; spatial_links differentiates "
-                "brax's spring step of a scene of a free root and hinges (ant): leave it "
-                "False")
+                "brax's spring step of a scene of a free root and joints that only turn (ant, "
+                "humanoid): leave it False")
     from tasks.spatial_links import spatial_scene
     scene = spatial_scene(task.env.unwrapped.sys)
     if isinstance(scene, str):
-        return (f"task {task.name!r}: {scene}; spatial_links models a free root and hinges "
-                "(ant): leave it False")
+        return (f"task {task.name!r}: {scene}; spatial_links models a free root and joints "
+                "that only turn (ant, humanoid): leave it False")
     return scene
 
 

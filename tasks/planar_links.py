@@ -81,6 +81,8 @@ class Links:
                              # `tasks.spatial_links`), not only the x-z plane's
     unit_inertia: bool = False  # every link's inverse inertia is the identity (brax's
                                 # spring_inertia_scale 1): R I R^T, written as I
+    rotary: object = None    # a 3-D scene's joint forces (`tasks.spatial_links.Rotary`)
+                             # in place of the fields above from spring_axis to dof_slides
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -241,6 +243,8 @@ def _per_link(values, dofs):
 
 def _joint_force(lk: Links, tau, j, jd):
     """`tasks.planar_spring.joint_force` of every link: (ang, vel) in its joint frame."""
+    if lk.rotary is not None:  # a 3-D scene's hinges, 2- and 3-dof joints that turn
+        return lk.rotary.force(lk, tau, j, jd)
     vel = vsub(vscale(neg(lk.stiffness), j[0]), vscale(lk.vel_damping, jd[0]))
     vel = vsub(vel, vadd(vscale(dot(lk.slide0, vel), lk.slide0),
                          vscale(dot(lk.slide1, vel), lk.slide1)))

@@ -1,5 +1,6 @@
-"""brax's spring control step for a 3-D scene of a free root and hinges, every link at once:
-ant's. ILD differentiates it in place of brax's step (`spatial_links`,
+"""brax's spring control step for a 3-D scene of a free root and joints that only turn, every
+link at once: ant's (hinges) and humanoid's (hinges, 2- and 3-dof joints). ILD
+differentiates it in place of brax's step (`spatial_links`,
 `tasks.core.with_spatial_adjoint`), as `tasks.planar_links` does for hopper's and
 walker2d's planar step.
 
@@ -13,18 +14,20 @@ its reverse mode on layout copies and scatter-adds around those small axes (resu
 JOURNAL.md, session 75: 308 scatter-adds in ant's compiled update). Here every array is
 (batch, links).
 
-What the scene needs and no more:
+What the scenes need and no more:
 - the free root: brax's `_free` has no force; here it is a link whose joint constants
-  (stiffness, damping, axes) are zero, so its joint force is zero;
-- the hinges: brax's `_one_dof` for a joint that turns (`tasks.planar_links._joint_force`),
-  their limits included;
-- the contacts: spheres (ant's feet) and capsules against a plane fixed in the world
-  (`tasks.planar_spring._contacts(spheres=True)`), brax's quirk of reading one entry of the
-  flattened inverse inertias kept;
-- the inverse inertia: with brax's `spring_inertia_scale` 1 (ant's) every link's inverse
-  inertia is R I R^T = I, which brax computes to round-off and this writes as the
-  identity (`Links.unit_inertia`). Its derivative differs from brax's only along the
-  quaternion itself (brax's R I R^T is |q|^4 I off the unit sphere), a direction the
+  (stiffness, damping, torque rows) are zero, so its joint force is zero;
+- the joints (`Rotary`): brax's `_one_dof` for a hinge, `_two_dof` and `_three_dof` for
+  joints whose every axis turns (`tasks.spring_adjoint.rotary_two` / `rotary_three`), as one
+  expression over the links: every link's joint frame and Euler angles, each term a joint
+  does not have read through a zero constant, each limit it does not have infinite;
+- the contacts: spheres (ant's and humanoid's feet) and capsules against a plane fixed in
+  the world (`tasks.planar_spring._contacts(spheres=True)`), brax's quirk of reading one
+  entry of the flattened inverse inertias kept;
+- the inverse inertia: with brax's `spring_inertia_scale` 1 (ant's, humanoid's) every
+  link's inverse inertia is R I R^T = I, which brax computes to round-off and this writes
+  as the identity (`Links.unit_inertia`). Its derivative differs from brax's only along
+  the quaternion itself (brax's R I R^T is |q|^4 I off the unit sphere), a direction the
   previous `integrate`'s normalization takes out of every gradient it passes back.
 
 `spatial_scene(sys)` reads the constants or says why the scene is not one this models;
@@ -33,33 +36,98 @@ scene are a scan of one checkpointed substep (`tasks.planar_links._scanned_subst
 Paired on one CPU core at B = 32 against the update through hand_adjoint's backward, ant's
 update ran 1.41x as fast, update / forward 3.22x -> 2.19x (session 76,
 results/spatial_links/paired_session76_scan_ant.csv); unrolled through arrays between
-substeps, as the planar step runs, it ran 1.016x as fast.
+substeps, as the planar step runs, it ran 1.016x as fast. Humanoid's (session 77), paired
+the same way twice: 1.143x and 1.209x as fast, update / forward 3.52x -> 3.02x and 3.20x ->
+2.67x (results/spatial_links/paired_session77_humanoid*.csv).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 from brax import kinematics
+from brax.math import safe_arccos
 
-from tasks.planar import ORIGIN, _const, _f32
-from tasks.planar_links import LinkScene, Links, _lc, _lv, contact_table
+from tasks.planar import (ORIGIN, _const, _f32, add, cross, dot, mul, neg, rotate, vadd,
+                          vscale, vsub)
+from tasks.planar_links import LinkScene, Links, _lc, _lv, _per_link, contact_table
 from tasks.planar_links import control_step  # noqa: F401  (the step, on a spatial_scene)
-from tasks.planar_spring import SpringScene, _contacts, spring_constants
+from tasks.planar_spring import SpringScene, _contacts, _excess, normalize, spring_constants
+
+IDENTITY_FRAME = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Rotary:
+    """The joint forces of a 3-D scene's links, entry by entry over the links (`_lc`): brax's
+    `_one_dof` for a hinge, `_two_dof` and `_three_dof` for joints that only turn (as
+    `tasks.spring_adjoint.rotary_two` and `rotary_three` write them), `_free` (no force) for
+    a root. Each link's joint frame (brax's `kinematics.link_to_joint_frame`) and Euler
+    angles (`kinematics.axis_angle_ang`: psi, theta, phi) are one expression over the links;
+    a term a link's joint does not have reads a zero constant, a limit it does not have
+    infinite bounds."""
+    frame: tuple       # (f0, f1, f2): each link's joint frame rows; a root's the identity's
+    parity: object     # a 3-dof joint's handedness (brax's parity), 1 elsewhere
+    align: object      # a hinge's constraint_stiffness (its torque to hold its axis)
+    align2: object     # a 2-dof joint's constraint_limit_stiffness (brax's torque toward its
+                       # joint plane), 0 elsewhere
+    rows: tuple        # per Euler angle k, per link, the dof whose force turns about axis k
+    lo: tuple          # per Euler angle, per link, its limit (-inf, inf where none)
+    hi: tuple
+    limit_stiffness: object
+    angles: int        # the most Euler angles a joint reads: 1 (hinges), 2 or 3
+    two: bool          # some joint is a 2-dof one
+
+    def force(self, lk: Links, tau, j, jd):
+        """Every link's joint force (ang, vel) in its joint frame. A root's rotation is read as
+        the identity here (its force is zero either way), so that the angles a root does not
+        read have well-defined derivatives wherever its body turns."""
+        vel = vsub(vscale(neg(lk.stiffness), j[0]), vscale(lk.vel_damping, jd[0]))
+        keep = np.float32(1.0) - lk.root
+        rot = (add(mul(j[1][0], keep), lk.root), *(mul(a, keep) for a in j[1][1:]))
+        f0, f1, f2 = self.frame
+        c0, c2 = rotate(f0, rot), rotate(f2, rot)  # the child's frame (brax's child_frame)
+        ang = vsub(vscale(neg(self.align), cross(f0, c0)), vscale(lk.ang_damping, jd[1]))
+        lon = normalize(cross(c2, f0))  # the line of nodes
+        axes = [f0]
+        angles = [jnp.arctan2(dot(cross(f1, lon), f0), dot(f1, lon))]  # psi
+        if self.angles >= 2:
+            c1 = rotate(f1, rot)
+            plane = normalize(vadd(vscale(dot(f0, c0), c0), vscale(dot(f0, c1), c1)))
+            angles.append(safe_arccos(jnp.clip(dot(plane, f0), -1.0, 1.0))
+                          * jnp.sign(dot(f0, c2)))  # theta
+            axes.append(c1)
+            if self.two:
+                proj = normalize(vsub(c1, vscale(dot(c1, f0), f0)))
+                ang = vsub(ang, vscale(self.align2, cross(proj, c1)))
+        if self.angles == 3:
+            c2p = vscale(self.parity, c2)
+            down = tuple(neg(a) for a in c2p)  # brax's yc_n_normal
+            angles.append(jnp.arctan2(dot(cross(c1, lon), down), dot(c1, lon)))  # phi
+            axes.append(c2p)
+        for axis, angle, rows, lo, hi in zip(axes, angles, self.rows, self.lo, self.hi):
+            ang = vadd(ang, vscale(_per_link(tau, rows), axis))
+            excess = _excess(angle, lo, hi)
+            ang = vsub(ang, vscale(mul(self.limit_stiffness, excess), axis))
+        return ang, vel
 
 
 def spatial_scene(sys) -> LinkScene | str:
     """The constants `control_step` reads, or why the scene is not one it models (a string):
-    free roots (links whose parent is the world) and hinges, motors (no position or velocity
-    bias), no fluid, contacts of spheres or capsules against a plane fixed in the world."""
+    free roots (links whose parent is the world), hinges, and 2- and 3-dof joints that only
+    turn; motors (no position or velocity bias), no fluid, contacts of spheres or capsules
+    against a plane fixed in the world."""
     if isinstance(sys.dof.motion.ang, jax.core.Tracer):
         return "its constants are traced (not known while tracing)"
     if sys.enable_fluid:
         return "it has fluid forces"
     parents = [int(p) for p in sys.link_parents]
     for i, typ in enumerate(sys.link_types):
-        if typ not in "f1" or (typ == "f") != (parents[i] < 0):
-            return ("it has a joint that is neither a free root nor a 1-dof joint below one "
-                    "(this models a free root and hinges: ant)")
+        if (typ == "f") != (parents[i] < 0):
+            return ("it has a free joint below another link or a root that is not free (this "
+                    "models free roots with joints below them: ant, humanoid)")
     motion_ang, motion_vel = np.asarray(sys.dof.motion.ang), np.asarray(sys.dof.motion.vel)
     act = sys.actuator
     if np.any(np.asarray(act.bias_q)) or np.any(np.asarray(act.bias_qd)):
@@ -69,33 +137,49 @@ def spatial_scene(sys) -> LinkScene | str:
         return contacts
     mass, i_diag, lo, hi = spring_constants(sys)
     link_of_dof = np.asarray(sys.dof_link())
-    num, zero = sys.num_links(), ORIGIN
-    hinges = {}  # link -> (dof, its joint frame's angular axes, (lo, hi) or ())
+    num = sys.num_links()
+    joints = {}  # link -> (its dofs, joint frame rows, parity, per-angle (lo, hi))
     for i, typ in enumerate(sys.link_types):
-        if typ != "1":
+        if typ == "f":
             continue
-        d = int(np.flatnonzero(link_of_dof == i)[0])
-        if not np.any(motion_ang[d]) or np.any(motion_vel[d]):
-            return "it has a 1-dof joint that slides (a hinge is what it models)"
-        frame, _ = kinematics.link_to_joint_frame(
-            jax.tree.map(lambda a: a[d:d + 1], sys.dof.motion))
-        bounds = (lo[d], hi[d])
-        hinges[i] = (d, tuple(_const(a) for a in np.asarray(frame.ang)),
-                     (_f32(bounds[0]), _f32(bounds[1])) if np.all(np.isfinite(bounds))
-                     else ())
-    limited = next((axes for _, axes, lim in hinges.values() if lim), None)
+        dofs = [int(d) for d in np.flatnonzero(link_of_dof == i)]
+        if np.any(motion_vel[dofs]) or not np.all(np.any(motion_ang[dofs], axis=-1)):
+            return ("it has a joint that slides (hinges and 2- and 3-dof joints that only "
+                    "turn are what it models)")
+        frame, parity = kinematics.link_to_joint_frame(
+            jax.tree.map(lambda a: a[dofs[0]:dofs[-1] + 1], sys.dof.motion))
+        bounds = [(_f32(lo[d]), _f32(hi[d])) for d in dofs]  # +-inf where a side has none
+        joints[i] = (dofs, tuple(_const(a) for a in np.asarray(frame.ang)), _f32(parity),
+                     bounds)
+    size = lambda i: len(joints[i][0]) if i in joints else 0  # noqa: E731
     parent = np.zeros((num, num), np.float32)
     for k, p in enumerate(parents):
         if p >= 0:
             parent[p, k] = 1.0
     link = sys.link
 
-    def per_link(values, free=0.0):  # a hinge's value, the free root's `free`
-        return _lc([values(i) if i in hinges else free for i in range(num)])
+    def per_link(values, free=0.0):  # a joint's value, a free root's `free`
+        return _lc([values(i) if i in joints else free for i in range(num)])
 
-    def axis(i):
-        return hinges[i][1][0] if i in hinges else zero
+    def bound(k, side):  # Euler angle k's limit of every link
+        return _lc([joints[i][3][k][side] if size(i) > k else (-np.inf, np.inf)[side]
+                    for i in range(num)])
 
+    angles = max(size(i) for i in range(num)) if joints else 1
+    rotary = Rotary(
+        frame=tuple(_lv([joints[i][1][k] if i in joints else IDENTITY_FRAME[k]
+                         for i in range(num)]) for k in range(3)),
+        parity=per_link(lambda i: joints[i][2], 1.0),
+        align=per_link(lambda i: _f32(link.constraint_stiffness[i]) if size(i) == 1 else 0.0),
+        align2=per_link(
+            lambda i: _f32(link.constraint_limit_stiffness[i]) if size(i) == 2 else 0.0),
+        rows=tuple(tuple(joints[i][0][k] if size(i) > k else -1 for i in range(num))
+                   for k in range(angles)),
+        lo=tuple(bound(k, 0) for k in range(angles)),
+        hi=tuple(bound(k, 1) for k in range(angles)),
+        limit_stiffness=per_link(lambda i: _f32(link.constraint_limit_stiffness[i])),
+        angles=angles, two=any(size(i) == 2 for i in range(num)))
+    zero = ORIGIN
     links = Links(
         num=num, parent=parent,
         root=np.asarray([float(p < 0) for p in parents], np.float32),
@@ -110,20 +194,10 @@ def spatial_scene(sys) -> LinkScene | str:
         stiffness=per_link(lambda i: _f32(link.constraint_stiffness[i])),
         vel_damping=per_link(lambda i: _f32(link.constraint_vel_damping[i])),
         ang_damping=per_link(lambda i: _f32(link.constraint_ang_damping[i])),
-        spring_axis=_lv([axis(i) for i in range(num)]),
-        fixed_axis=_lv([axis(i) for i in range(num)]),
-        turned_axis=zero, slide0=zero, slide1=zero,
-        limited=limited is not None,
-        limit_axes=() if limited is None else tuple(
-            _lv([hinges[i][1][k] if i in hinges and hinges[i][2] else limited[k]
-                 for i in range(num)]) for k in range(3)),
-        lo=per_link(lambda i: hinges[i][2][0] if hinges[i][2] else -np.inf, -np.inf),
-        hi=per_link(lambda i: hinges[i][2][1] if hinges[i][2] else np.inf, np.inf),
-        limit_stiffness=per_link(
-            lambda i: _f32(link.constraint_limit_stiffness[i]) if hinges[i][2] else 0.0),
-        dof_turn=tuple(hinges[i][0] if i in hinges else -1 for i in range(num)),
-        dof_slides=((-1, -1),) * num,
-        full=True, unit_inertia=bool(np.all(i_diag == 1.0)))
+        spring_axis=zero, fixed_axis=zero, turned_axis=zero, slide0=zero, slide1=zero,
+        limited=False, limit_axes=(), lo=-np.inf, hi=np.inf, limit_stiffness=0.0,
+        dof_turn=(-1,) * num, dof_slides=((-1, -1),) * num,
+        full=True, unit_inertia=bool(np.all(i_diag == 1.0)), rotary=rotary)
     dt = _f32(sys.opt.timestep)
     damp = lambda d: _f32(np.exp(np.float32(d) * np.float32(dt)))  # noqa: E731
     scene = SpringScene(

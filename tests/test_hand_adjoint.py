@@ -562,7 +562,7 @@ def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint(
 
 def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
     """PLATFORM_OVERRIDES: on 'gpu' ant's and humanoid's config has hand_adjoint off and with
-    it its pieces (hinge_forces, saved_residuals, rotary_joints), and ant's spatial_links
+    it its pieces (hinge_forces, saved_residuals, rotary_joints), and their spatial_links
     off, the rest of the task's overrides kept; on 'cpu' they stay on; `--set
     hand_adjoint=true` on a GPU brings the pieces back; every other task's config is the
     same on both platforms."""
@@ -573,7 +573,8 @@ def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
     ild = get_method("ild")
     for task, pieces, also in (
             ("ant", ("hinge_forces", "saved_residuals"), ("spatial_links",)),
-            ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"), ())):
+            ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"),
+             ("spatial_links",))):
         cpu = build_config(ild, task, "paper", platform="cpu")
         gpu = build_config(ild, task, "paper", platform="gpu")
         assert cpu.hand_adjoint and all(getattr(cpu, f) for f in pieces + also)
@@ -581,8 +582,8 @@ def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
         assert gpu.lean_substeps and gpu.substep_remat and gpu.num_envs == 360
         assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces + also}) == cpu
         back = build_config(ild, task, "paper", {"hand_adjoint": "true"}, platform="gpu")
-        assert back == dc.replace(cpu, **{f: False for f in also})  # ant's spatial_links
-        # (CPU-measured, session 76) stays off on a GPU
+        assert back == dc.replace(cpu, **{f: False for f in also})  # spatial_links
+        # (CPU-measured, sessions 76-77) stays off on a GPU
     for task in TASK_OVERRIDES:
         if task not in ("ant", "humanoid"):
             assert (build_config(ild, task, "cpu", platform="gpu")

@@ -285,16 +285,17 @@ class ILDConfig:
     1.17x (hopper) and 1.47x (walker2d) faster, paired (session 70). Off in the class;
     `PLANAR_LINKS_TASKS` turn it on. Needs `planar_adjoint`; positional tasks refuse it."""
     spatial_links: bool = False
-    """On brax's spring backend, for a scene of a free root and hinges with contacts against
-    a plane (ant): the training rollouts' control step runs the task's own physics (with
-    `lean_substeps` and `hand_adjoint` as set; `substep_remat` has nothing left to act on)
-    and, in reverse mode, the VJP of brax's spring step written with every entry of every
+    """On brax's spring backend, for a scene of a free root and joints that only turn
+    (hinges, 2- and 3-dof joints) with contacts against a plane (ant, humanoid): the
+    training rollouts' control step runs the task's own physics (with `lean_substeps` and
+    `hand_adjoint` as set; `substep_remat` has nothing left to act on) and, in reverse mode, the VJP of brax's spring step written with every entry of every
     vector an array over the links (`tasks.spatial_links.control_step`;
     `tasks.core.with_spatial_adjoint`), in place of reverse mode through brax's arrays of
     3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
-    (tests/test_spatial_links.py); ant's update 1.41x faster, paired (session 76). Tasks
-    with other joints (humanoid's 2- and 3-dof ones) or backends refuse it. Off in the
-    class; `SPATIAL_LINKS_TASKS` turn it on, and on a GPU `PLATFORM_OVERRIDES` off."""
+    (tests/test_spatial_links.py); ant's update 1.41x faster, paired (session 76),
+    humanoid's 1.14x (session 77). Tasks with joints that slide, roots that are not free,
+    or other backends refuse it. Off in the class; `SPATIAL_LINKS_TASKS` turn it on, and on
+    a GPU `PLATFORM_OVERRIDES` off."""
     planar_normal_gravity: bool = False
     """With `planar_adjoint` on the positional backend: a scene whose gravity is along the
     normal of the plane its hinges turn in (reacher's, along its hinges) is differentiated
@@ -540,12 +541,16 @@ _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 # ant's spring step with every link at once in 3-D (session 76, `tasks.spatial_links`), its
 # substeps a scan of one checkpointed substep: the same rollout, its gradient the same to
 # float32 round-off (tests/test_spatial_links.py: 1.25e-5 of each leaf's largest entry over
-# 16 steps, measured on its first, unrolled form); one core, B = 32, paired against the same update with hand_adjoint's backward
+# 16 steps, measured on its first, unrolled form); one core, B = 32, paired against the
+# same update with hand_adjoint's backward
 # (results/spatial_links/paired_session76_scan_ant.csv): 1.41x faster, update / forward
-# 3.22x -> 2.19x (every round under 3x). ant's 3- and 10-minute ILD cells were recorded
-# before it. Not timed on a GPU, where ant trains through XLA's reverse mode
-# (PLATFORM_OVERRIDES below turn it off there).
-SPATIAL_LINKS_TASKS = ("ant",)
+# 3.22x -> 2.19x (every round under 3x). Humanoid's since session 77, its 2- and 3-dof
+# joints written the same way (`tasks.spatial_links.Rotary`): paired the same way
+# (results/spatial_links/paired_session77_humanoid.csv) 1.143x faster, update / forward
+# 3.52x -> 3.02x. ant's and humanoid's 3- and 10-minute ILD cells were recorded before it.
+# Not timed on a GPU, where both train through XLA's reverse mode (PLATFORM_OVERRIDES below
+# turn it off there).
+SPATIAL_LINKS_TASKS = ("ant", "humanoid")
 _merge_overrides(SPATIAL_LINKS_TASKS, spatial_links=True)
 
 # On a GPU, ant and humanoid differentiate brax's spring substep by XLA's reverse mode
@@ -558,9 +563,9 @@ _merge_overrides(SPATIAL_LINKS_TASKS, spatial_links=True)
 # calls) against 0.4667 / 0.4105 s without, humanoid 0.6089 s against 0.5639 s, ant at
 # B = 32 0.4457 s against 0.3849 s; session 56 saw humanoid's 8% the same way in two calls
 # (ant's flipped there). The gradient is the same to float32 round-off either way, so this is
-# a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back. ant's
-# `spatial_links` (session 76, CPU-measured) is off there too.
+# a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back. ant's and
+# humanoid's `spatial_links` (sessions 76-77, CPU-measured) are off there too.
 PLATFORM_OVERRIDES: dict[str, dict[str, dict]] = {
     "gpu": {"ant": {"hand_adjoint": False, "spatial_links": False},
-            "humanoid": {"hand_adjoint": False}},
+            "humanoid": {"hand_adjoint": False, "spatial_links": False}},
 }

@@ -4,8 +4,10 @@ from x_i and xd_i) and as `tasks.spatial_links.control_step`: milliseconds per c
 one's forward and of its value and VJP (a sine cotangent), jitted, medians over 11 rounds of
 20 calls, then (without --no-profile) the form's VJP by XLA operation (session 76):
 
-    PYTHONPATH=. taskset -c 1 python results/spatial_links/step_vjp.py [--batch 32]
-        [--no-profile]
+    PYTHONPATH=. taskset -c 1 python results/spatial_links/step_vjp.py [--task ant]
+        [--batch 32] [--no-profile]
+
+(--task humanoid: the same for humanoid's step, session 77.)
 """
 import argparse
 import sys
@@ -23,10 +25,11 @@ from tests.test_spatial_links import _control_steps  # noqa: E402
 
 def main():
     p = argparse.ArgumentParser()
+    p.add_argument("--task", default="ant", choices=("ant", "humanoid"))
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--no-profile", action="store_true")
     a = p.parse_args()
-    trained, ours, args, _ = _control_steps(a.batch)
+    trained, ours, args, _ = _control_steps(a.task, a.batch)
 
     def vjp_of(f):
         def g(*args):
