@@ -37,8 +37,8 @@ Paired on one CPU core at B = 32 against the update through hand_adjoint's backw
 update ran 1.41x as fast, update / forward 3.22x -> 2.19x (session 76,
 results/spatial_links/paired_session76_scan_ant.csv); unrolled through arrays between
 substeps, as the planar step runs, it ran 1.016x as fast. Humanoid's (session 77), paired
-the same way twice: 1.143x and 1.209x as fast, update / forward 3.52x -> 3.02x and 3.20x ->
-2.67x (results/spatial_links/paired_session77_humanoid*.csv).
+the same way three times: 1.14x, 1.21x and 1.19x as fast, update / forward 3.52x -> 3.02x,
+3.20x -> 2.67x and 3.20x -> 2.71x (results/spatial_links/paired_session77_humanoid*.csv).
 """
 from __future__ import annotations
 

@@ -78,8 +78,8 @@ def test_spatial_scene_reads_humanoid_over_its_links():
     for k, links in enumerate((hinges + twos + threes, twos + threes, threes)):
         finite = np.isfinite(rj.lo[k]) & np.isfinite(rj.hi[k])
         np.testing.assert_array_equal(np.flatnonzero(finite), sorted(links))
-    np.testing.assert_allclose(rj.lo[0][4], -2.7925267) and np.testing.assert_allclose(
-        rj.hi[0][4], -0.03490658)
+    np.testing.assert_allclose(rj.lo[0][4], -2.7925267, rtol=1e-6)  # float32
+    np.testing.assert_allclose(rj.hi[0][4], -0.03490658, rtol=1e-6)
     np.testing.assert_array_equal(cs.to_contacts.argmax(axis=0), [4, 6])
     assert cs.half == 0.0
 

@@ -293,7 +293,7 @@ class ILDConfig:
     `tasks.core.with_spatial_adjoint`), in place of reverse mode through brax's arrays of
     3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
     (tests/test_spatial_links.py); ant's update 1.41x faster, paired (session 76),
-    humanoid's 1.14x (session 77). Tasks with joints that slide, roots that are not free,
+    humanoid's 1.14-1.21x (session 77). Tasks with joints that slide, roots that are not free,
     or other backends refuse it. Off in the class; `SPATIAL_LINKS_TASKS` turn it on, and on
     a GPU `PLATFORM_OVERRIDES` off."""
     planar_normal_gravity: bool = False
@@ -546,8 +546,8 @@ _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 # (results/spatial_links/paired_session76_scan_ant.csv): 1.41x faster, update / forward
 # 3.22x -> 2.19x (every round under 3x). Humanoid's since session 77, its 2- and 3-dof
 # joints written the same way (`tasks.spatial_links.Rotary`): paired the same way
-# (results/spatial_links/paired_session77_humanoid.csv) 1.143x faster, update / forward
-# 3.52x -> 3.02x. ant's and humanoid's 3- and 10-minute ILD cells were recorded before it.
+# (results/spatial_links/paired_session77_humanoid*.csv, three runs) 1.14-1.21x faster,
+# update / forward 3.52x -> 3.02x, 3.20x -> 2.67x and 3.20x -> 2.71x. ant's and humanoid's 3- and 10-minute ILD cells were recorded before it.
 # Not timed on a GPU, where both train through XLA's reverse mode (PLATFORM_OVERRIDES below
 # turn it off there).
 SPATIAL_LINKS_TASKS = ("ant", "humanoid")
