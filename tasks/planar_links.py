@@ -51,7 +51,9 @@ def _lv(vectors):
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Links:
-    """Every link's constants, entry by entry over the links (`_lc`)."""
+    """Every link's constants, entry by entry over the links (`_lc`): what every scene's
+    substep reads, and its joints' (`joints`: a planar scene's `PlanarJoints`, a 3-D
+    scene's `tasks.spatial_links.Rotary`), each of which models only its kind of scene."""
     num: int
     parent: np.ndarray      # (L, L): [p, k] = 1 where p is link k's parent
     root: np.ndarray        # (L,): 1 at a link whose parent is the world
@@ -64,6 +66,19 @@ class Links:
     stiffness: object
     vel_damping: object
     ang_damping: object
+    joints: object           # `force(lk, tau, j, jd)`: every link's joint force
+    full: bool = False       # every entry of a vector is live (a 3-D scene:
+                             # `tasks.spatial_links`), not only the x-z plane's
+    unit_inertia: bool = False  # every link's inverse inertia is the identity (brax's
+                                # spring_inertia_scale 1): R I R^T, written as I
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlanarJoints:
+    """A planar scene's joint forces over the links (`tasks.planar_spring.joint_force`): a
+    root's slides and turning dof, a hinge's spring toward its axis, each link reading the
+    terms of its kind (the other kind's constants are zero), and a limit force where a
+    link has a joint limit."""
     spring_axis: tuple      # a hinge's a_0, a root's turning dof's motion
     fixed_axis: tuple       # the turning torque's axis where it does not turn with j.rot
     turned_axis: tuple      #   ... and where it does (a root's rows 1 and 2)
@@ -77,12 +92,27 @@ class Links:
     limit_stiffness: object  # zero where a link has no limit
     dof_turn: tuple          # per link, the dof whose force turns it
     dof_slides: tuple        # per link, its slides' dofs (-1 for a hinge)
-    full: bool = False       # every entry of a vector is live (a 3-D scene:
-                             # `tasks.spatial_links`), not only the x-z plane's
-    unit_inertia: bool = False  # every link's inverse inertia is the identity (brax's
-                                # spring_inertia_scale 1): R I R^T, written as I
-    rotary: object = None    # a 3-D scene's joint forces (`tasks.spatial_links.Rotary`)
-                             # in place of the fields above from spring_axis to dof_slides
+
+    def force(self, lk: Links, tau, j, jd):
+        """Every link's joint force (ang, vel) in its joint frame."""
+        vel = vsub(vscale(neg(lk.stiffness), j[0]), vscale(lk.vel_damping, jd[0]))
+        vel = vsub(vel, vadd(vscale(dot(self.slide0, vel), self.slide0),
+                             vscale(dot(self.slide1, vel), self.slide1)))
+        s0 = _per_link(tau, [d[0] for d in self.dof_slides])
+        s1 = _per_link(tau, [d[1] for d in self.dof_slides])
+        vel = vadd(vel, vadd(vscale(s0, self.slide0), vscale(s1, self.slide1)))
+        a = self.spring_axis
+        ang = vscale(mul(-1.0, lk.stiffness), cross(a, rotate(a, j[1])))
+        axis = vadd(self.fixed_axis, rotate(self.turned_axis, j[1]))
+        ang = vadd(ang, vscale(_per_link(tau, self.dof_turn), axis))
+        ang = vsub(ang, vscale(lk.ang_damping, jd[1]))
+        if self.limited:
+            a0, a1, a2 = self.limit_axes
+            lon = normalize(cross(rotate(a2, j[1]), a0))
+            psi = jnp.arctan2(dot(cross(a1, lon), a0), dot(a1, lon))
+            dang = _excess(psi, self.lo, self.hi)
+            ang = vsub(ang, vscale(dang, vscale(self.limit_stiffness, a0)))
+        return ang, vel
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -130,22 +160,23 @@ def link_scene(sc: SpringScene) -> LinkScene:
         mass=_lc([ln.mass for ln in lns]), stiffness=_lc([ln.stiffness for ln in lns]),
         vel_damping=_lc([ln.vel_damping for ln in lns]),
         ang_damping=_lc([ln.ang_damping for ln in lns]),
-        spring_axis=_lv([ln.turn_motion if ln.root else ln.axes[0] for ln in lns]),
-        fixed_axis=_lv([(zero if ln.turn_rotates else f32(ln.turn_axis, ln.turn_parity))
-                        if ln.root else ln.axes[0] for ln in lns]),
-        turned_axis=_lv([f32(ln.turn_axis, ln.turn_parity) if ln.root and ln.turn_rotates
-                         else zero for ln in lns]),
-        slide0=_lv([ln.slides[0][1] if ln.root else zero for ln in lns]),
-        slide1=_lv([ln.slides[1][1] if ln.root else zero for ln in lns]),
-        limited=limited is not None,
-        limit_axes=() if limited is None else tuple(
-            _lv([ln.axes[i] if ln.limit else limited[i] for ln in lns]) for i in range(3)),
-        lo=_lc([ln.limit[0] if ln.limit else -np.inf for ln in lns]),
-        hi=_lc([ln.limit[1] if ln.limit else np.inf for ln in lns]),
-        limit_stiffness=_lc([ln.limit_stiffness if ln.limit else 0.0 for ln in lns]),
-        dof_turn=tuple(ln.dofs[ln.turn] if ln.root else ln.dofs[0] for ln in lns),
-        dof_slides=tuple(tuple(ln.dofs[r] for r, _ in ln.slides) if ln.root else (-1, -1)
-                         for ln in lns))
+        joints=PlanarJoints(
+            spring_axis=_lv([ln.turn_motion if ln.root else ln.axes[0] for ln in lns]),
+            fixed_axis=_lv([(zero if ln.turn_rotates else f32(ln.turn_axis, ln.turn_parity))
+                            if ln.root else ln.axes[0] for ln in lns]),
+            turned_axis=_lv([f32(ln.turn_axis, ln.turn_parity) if ln.root and ln.turn_rotates
+                             else zero for ln in lns]),
+            slide0=_lv([ln.slides[0][1] if ln.root else zero for ln in lns]),
+            slide1=_lv([ln.slides[1][1] if ln.root else zero for ln in lns]),
+            limited=limited is not None,
+            limit_axes=() if limited is None else tuple(
+                _lv([ln.axes[i] if ln.limit else limited[i] for ln in lns]) for i in range(3)),
+            lo=_lc([ln.limit[0] if ln.limit else -np.inf for ln in lns]),
+            hi=_lc([ln.limit[1] if ln.limit else np.inf for ln in lns]),
+            limit_stiffness=_lc([ln.limit_stiffness if ln.limit else 0.0 for ln in lns]),
+            dof_turn=tuple(ln.dofs[ln.turn] if ln.root else ln.dofs[0] for ln in lns),
+            dof_slides=tuple(tuple(ln.dofs[r] for r, _ in ln.slides) if ln.root else (-1, -1)
+                             for ln in lns)))
     contacts = contact_table(sc.contacts, [ln.mass for ln in lns], num)
     return LinkScene(scene=sc, links=links, contacts=contacts)
 
@@ -242,27 +273,9 @@ def _per_link(values, dofs):
 
 
 def _joint_force(lk: Links, tau, j, jd):
-    """`tasks.planar_spring.joint_force` of every link: (ang, vel) in its joint frame."""
-    if lk.rotary is not None:  # a 3-D scene's hinges, 2- and 3-dof joints that turn
-        return lk.rotary.force(lk, tau, j, jd)
-    vel = vsub(vscale(neg(lk.stiffness), j[0]), vscale(lk.vel_damping, jd[0]))
-    vel = vsub(vel, vadd(vscale(dot(lk.slide0, vel), lk.slide0),
-                         vscale(dot(lk.slide1, vel), lk.slide1)))
-    s0 = _per_link(tau, [d[0] for d in lk.dof_slides])
-    s1 = _per_link(tau, [d[1] for d in lk.dof_slides])
-    vel = vadd(vel, vadd(vscale(s0, lk.slide0), vscale(s1, lk.slide1)))
-    a = lk.spring_axis
-    ang = vscale(mul(-1.0, lk.stiffness), cross(a, rotate(a, j[1])))
-    axis = vadd(lk.fixed_axis, rotate(lk.turned_axis, j[1]))
-    ang = vadd(ang, vscale(_per_link(tau, lk.dof_turn), axis))
-    ang = vsub(ang, vscale(lk.ang_damping, jd[1]))
-    if lk.limited:
-        a0, a1, a2 = lk.limit_axes
-        lon = normalize(cross(rotate(a2, j[1]), a0))
-        psi = jnp.arctan2(dot(cross(a1, lon), a0), dot(a1, lon))
-        dang = _excess(psi, lk.lo, lk.hi)
-        ang = vsub(ang, vscale(dang, vscale(lk.limit_stiffness, a0)))
-    return ang, vel
+    """`tasks.planar_spring.joint_force` of every link: (ang, vel) in its joint frame, as
+    the scene's joints model it (`PlanarJoints`, `tasks.spatial_links.Rotary`)."""
+    return lk.joints.force(lk, tau, j, jd)
 
 
 def _to_links(lk: Links, ang, vel, jw, x_i):

@@ -5,7 +5,7 @@ differentiates it in place of brax's step (`spatial_links`,
 walker2d's planar step.
 
 It is `tasks.planar_links`' step with every entry of every vector and quaternion live (a
-`Links` with `full`): each entry one array over the links (or the contacts), what a link
+`Links` with `full`, whose `joints` are a `Rotary`): each entry one array over the links (or the contacts), what a link
 reads of another through products with constant one-hot matrices, and the constants that
 are the same on every link (a zero, a one) folded while tracing. brax's own substep
 (`brax.spring.pipeline.step`; in ILD `tasks.spring_adjoint.step`) works on arrays whose
@@ -50,7 +50,7 @@ import numpy as np
 from brax import kinematics
 from brax.math import safe_arccos
 
-from tasks.planar import (ORIGIN, _const, _f32, add, cross, dot, mul, neg, rotate, vadd,
+from tasks.planar import (_const, _f32, add, cross, dot, mul, neg, rotate, vadd,
                           vscale, vsub)
 from tasks.planar_links import LinkScene, Links, _lc, _lv, _per_link, contact_table
 from tasks.planar_links import control_step  # noqa: F401  (the step, on a spatial_scene)
@@ -179,7 +179,6 @@ def spatial_scene(sys) -> LinkScene | str:
         hi=tuple(bound(k, 1) for k in range(angles)),
         limit_stiffness=per_link(lambda i: _f32(link.constraint_limit_stiffness[i])),
         angles=angles, two=any(size(i) == 2 for i in range(num)))
-    zero = ORIGIN
     links = Links(
         num=num, parent=parent,
         root=np.asarray([float(p < 0) for p in parents], np.float32),
@@ -194,10 +193,7 @@ def spatial_scene(sys) -> LinkScene | str:
         stiffness=per_link(lambda i: _f32(link.constraint_stiffness[i])),
         vel_damping=per_link(lambda i: _f32(link.constraint_vel_damping[i])),
         ang_damping=per_link(lambda i: _f32(link.constraint_ang_damping[i])),
-        spring_axis=zero, fixed_axis=zero, turned_axis=zero, slide0=zero, slide1=zero,
-        limited=False, limit_axes=(), lo=-np.inf, hi=np.inf, limit_stiffness=0.0,
-        dof_turn=(-1,) * num, dof_slides=((-1, -1),) * num,
-        full=True, unit_inertia=bool(np.all(i_diag == 1.0)), rotary=rotary)
+        joints=rotary, full=True, unit_inertia=bool(np.all(i_diag == 1.0)))
     dt = _f32(sys.opt.timestep)
     damp = lambda d: _f32(np.exp(np.float32(d) * np.float32(dt)))  # noqa: E731
     scene = SpringScene(

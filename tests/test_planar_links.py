@@ -31,23 +31,24 @@ def test_link_scene_reads_hopper_over_its_links():
     inertia."""
     ls = planar_links.link_scene(planar_spring.spring_scene(
         make_task("hopper").env.unwrapped.sys))
-    lk, cs = ls.links, ls.contacts
+    lk, cs, pj = ls.links, ls.contacts, ls.links.joints
     np.testing.assert_array_equal(lk.parent, [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1],
                                               [0, 0, 0, 0]])
     np.testing.assert_array_equal(lk.root, [1, 0, 0, 0])
-    assert lk.spring_axis[0] == 0.0 and lk.spring_axis[2] == 0.0
-    np.testing.assert_array_equal(lk.spring_axis[1], [1, -1, -1, -1])
-    assert lk.fixed_axis[0] == 0.0 and lk.fixed_axis[2] == 0.0
-    np.testing.assert_array_equal(lk.fixed_axis[1], [0, -1, -1, -1])
-    assert lk.turned_axis[:1] == (0.0,) and lk.turned_axis[2] == 0.0
-    np.testing.assert_array_equal(lk.turned_axis[1], [1, 0, 0, 0])
-    np.testing.assert_array_equal(lk.slide0[0], [1, 0, 0, 0])
-    assert lk.slide0[1:] == (0.0, 0.0) and lk.slide1[:2] == (0.0, 0.0)
-    assert lk.limited and lk.dof_turn == (2, 3, 4, 5)
-    assert lk.dof_slides == ((0, 1), (-1, -1), (-1, -1), (-1, -1))
-    np.testing.assert_array_equal(lk.lo, np.float32([-np.inf, -2.61799, -2.61799, -0.785398]))
-    np.testing.assert_array_equal(lk.hi, np.float32([np.inf, 0.0, 0.0, 0.785398]))
-    assert lk.limit_stiffness[0] == 0.0 and np.all(lk.limit_stiffness[1:] > 0)
+    assert isinstance(pj, planar_links.PlanarJoints)
+    assert pj.spring_axis[0] == 0.0 and pj.spring_axis[2] == 0.0
+    np.testing.assert_array_equal(pj.spring_axis[1], [1, -1, -1, -1])
+    assert pj.fixed_axis[0] == 0.0 and pj.fixed_axis[2] == 0.0
+    np.testing.assert_array_equal(pj.fixed_axis[1], [0, -1, -1, -1])
+    assert pj.turned_axis[:1] == (0.0,) and pj.turned_axis[2] == 0.0
+    np.testing.assert_array_equal(pj.turned_axis[1], [1, 0, 0, 0])
+    np.testing.assert_array_equal(pj.slide0[0], [1, 0, 0, 0])
+    assert pj.slide0[1:] == (0.0, 0.0) and pj.slide1[:2] == (0.0, 0.0)
+    assert pj.limited and pj.dof_turn == (2, 3, 4, 5)
+    assert pj.dof_slides == ((0, 1), (-1, -1), (-1, -1), (-1, -1))
+    np.testing.assert_array_equal(pj.lo, np.float32([-np.inf, -2.61799, -2.61799, -0.785398]))
+    np.testing.assert_array_equal(pj.hi, np.float32([np.inf, 0.0, 0.0, 0.785398]))
+    assert pj.limit_stiffness[0] == 0.0 and np.all(pj.limit_stiffness[1:] > 0)
     assert lk.transform[1] == (1.0, 0.0, 0.0, 0.0)  # every link's: the identity, folded
     np.testing.assert_array_equal(cs.to_contacts, [[0, 0], [0, 0], [0, 0], [1, 1]])
     assert cs.flat_entries == ((1, 0),) and cs.flat[:, 0].tolist() == [1, 0, 0, 0]

@@ -26,7 +26,7 @@ def test_spatial_scene_reads_ant_over_its_links():
     each foot's contact reads: link 0's (0, 2), (1, 1), (2, 0), (2, 2) for feet 2, 4, 6, 8
     (identity entries 0, 1, 0, 1)."""
     ls = spatial_links.spatial_scene(make_task("ant").env.unwrapped.sys)
-    lk, cs, rj = ls.links, ls.contacts, ls.links.rotary
+    lk, cs, rj = ls.links, ls.contacts, ls.links.joints
     want = np.zeros((9, 9), np.float32)
     for child, parent in enumerate([-1, 0, 1, 0, 3, 0, 5, 0, 7]):
         if parent >= 0:
@@ -61,9 +61,10 @@ def test_spatial_scene_reads_humanoid_over_its_links():
     joint by neither. Real masses (spring_mass_scale 0: the torso's 8.91), inverse
     inertias of one (spring_inertia_scale 1), the two feet spheres on the shins."""
     ls = spatial_links.spatial_scene(make_task("humanoid").env.unwrapped.sys)
-    lk, cs, rj = ls.links, ls.contacts, ls.links.rotary
+    lk, cs, rj = ls.links, ls.contacts, ls.links.joints
     assert [int(p) for p in lk.parent.T @ np.arange(11) + (lk.root * -1)] == [
         -1, 0, 1, 2, 3, 2, 5, 0, 7, 0, 9]
+    assert isinstance(rj, spatial_links.Rotary)  # no planar joint fields (PlanarJoints)
     assert lk.full and lk.unit_inertia and rj.angles == 3 and rj.two
     np.testing.assert_allclose(lk.mass[0], 8.907462, rtol=1e-6)
     hinges, twos, threes = [2, 4, 6, 8, 10], [1, 7, 9], [3, 5]
