@@ -41,7 +41,8 @@ def _lc(values):
 
 
 UNIT = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-"""The identity's rows, as `Links.unit_inertia` reads every link's inverse inertia."""
+"""The identity's rows: every link's inverse inertia where `Links.unit_inertia`, and a free
+root's joint frame in `tasks.spatial_links.Rotary`."""
 
 
 def _lv(vectors):

@@ -5,9 +5,10 @@ differentiates it in place of brax's step (`spatial_links`,
 walker2d's planar step.
 
 It is `tasks.planar_links`' step with every entry of every vector and quaternion live (a
-`Links` with `full`, whose `joints` are a `Rotary`): each entry one array over the links (or the contacts), what a link
-reads of another through products with constant one-hot matrices, and the constants that
-are the same on every link (a zero, a one) folded while tracing. brax's own substep
+`Links` with `full`, whose `joints` are a `Rotary`): each entry one array over the links
+(or the contacts), what a link reads of another through products with constant one-hot
+matrices, and the constants that are the same on every link (a zero, a one) folded while
+tracing. brax's own substep
 (`brax.spring.pipeline.step`; in ILD `tasks.spring_adjoint.step`) works on arrays whose
 last axis is a vector's 3 or a quaternion's 4 entries, and XLA's CPU backend spends much of
 its reverse mode on layout copies and scatter-adds around those small axes (results/
@@ -52,11 +53,9 @@ from brax.math import safe_arccos
 
 from tasks.planar import (_const, _f32, add, cross, dot, mul, neg, rotate, vadd,
                           vscale, vsub)
-from tasks.planar_links import LinkScene, Links, _lc, _lv, _per_link, contact_table
+from tasks.planar_links import UNIT, LinkScene, Links, _lc, _lv, _per_link, contact_table
 from tasks.planar_links import control_step  # noqa: F401  (the step, on a spatial_scene)
 from tasks.planar_spring import SpringScene, _contacts, _excess, normalize, spring_constants
-
-IDENTITY_FRAME = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -167,7 +166,7 @@ def spatial_scene(sys) -> LinkScene | str:
 
     angles = max(size(i) for i in range(num)) if joints else 1
     rotary = Rotary(
-        frame=tuple(_lv([joints[i][1][k] if i in joints else IDENTITY_FRAME[k]
+        frame=tuple(_lv([joints[i][1][k] if i in joints else UNIT[k]
                          for i in range(num)]) for k in range(3)),
         parity=per_link(lambda i: joints[i][2], 1.0),
         align=per_link(lambda i: _f32(link.constraint_stiffness[i]) if size(i) == 1 else 0.0),

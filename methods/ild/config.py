@@ -288,7 +288,8 @@ class ILDConfig:
     """On brax's spring backend, for a scene of a free root and joints that only turn
     (hinges, 2- and 3-dof joints) with contacts against a plane (ant, humanoid): the
     training rollouts' control step runs the task's own physics (with `lean_substeps` and
-    `hand_adjoint` as set; `substep_remat` has nothing left to act on) and, in reverse mode, the VJP of brax's spring step written with every entry of every
+    `hand_adjoint` as set; `substep_remat` has nothing left to act on) and, in reverse
+    mode, the VJP of brax's spring step written with every entry of every
     vector an array over the links (`tasks.spatial_links.control_step`;
     `tasks.core.with_spatial_adjoint`), in place of reverse mode through brax's arrays of
     3- and 4-vectors. The same rollout, and the same gradient to float32 round-off
@@ -547,7 +548,9 @@ _merge_overrides(SAVED_RESIDUALS_TASKS, saved_residuals=True)
 # 3.22x -> 2.19x (every round under 3x). Humanoid's since session 77, its 2- and 3-dof
 # joints written the same way (`tasks.spatial_links.Rotary`): paired the same way
 # (results/spatial_links/paired_session77_humanoid*.csv, three runs) 1.14-1.21x faster,
-# update / forward 3.52x -> 3.02x, 3.20x -> 2.67x and 3.20x -> 2.71x. ant's and humanoid's 3- and 10-minute ILD cells were recorded before it.
+# update / forward 3.52x -> 3.02x, 3.20x -> 2.67x and 3.20x -> 2.71x (session 78, a fourth
+# run: 3.19x -> 2.69x). ant's and humanoid's 3- and 10-minute ILD cells were re-run with it
+# in session 78.
 # Not timed on a GPU, where both train through XLA's reverse mode (PLATFORM_OVERRIDES below
 # turn it off there).
 SPATIAL_LINKS_TASKS = ("ant", "humanoid")
