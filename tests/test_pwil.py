@@ -117,21 +117,105 @@ def test_env_wrapper_rewards_before_stepping_and_resets_at_episode_end():
     assert dones.all() and np.allclose(env.rewarder.weights, 1 / 128)  # fresh episode
 
 
-def test_prefill_puts_demo_transitions_with_reward_alpha():
+def _pointmass_learner(**over):
     task = make_task("pointmass")
     demo = DemoView(load_demo(task.spec.demo_path, task),
                     Uses(demo_states=True, demo_actions=True), "pwil")
-    cfg = PWILConfig(actor_hidden=(8,), critic_hidden=(8,), num_envs=4, steps_per_collect=4)
-    _, obs, act = pwil.expert_atoms(demo, cfg)
-    venv = BraxVecEnv(task.env, 4, 128)
-    model = pwil.build_model(venv, cfg, seed=0)
-    n = pwil.prefill(model, obs, act, cfg.alpha, 600)
+    cfg = PWILConfig(**{**dict(actor_hidden=(8,), critic_hidden=(8,), num_envs=4,
+                               steps_per_collect=4), **over})
+    model, _ = pwil.make_learner(task.env, 128, demo, cfg, seed=0)
+    return model, cfg, demo
+
+
+def test_demo_rows_are_sampled_in_the_prefill_proportion_with_n_step_returns_of_alpha():
+    """Replaces a replay that held 50,000 demo copies whatever the budget: the demo is stored
+    once and a batch row is a demo row with probability D / (D + A)."""
+    model, cfg, demo = _pointmass_learner()
     buf = model.replay_buffer
-    assert n == 600 and buf.pos == 150
-    np.testing.assert_array_equal(buf.observations[:128, 2], obs[:-1])
-    np.testing.assert_array_equal(buf.next_observations[:128, 1], obs[1:])
-    assert np.all(buf.rewards[:150] == cfg.alpha)
-    assert buf.dones[127].all() and buf.timeouts[127].all() and not buf.dones[126].any()
+    assert buf.demo.size() == 128 and buf.size() == 0
+    # 75 agent rows x 4 envs = 300 agent transitions (reward 0, never done).
+    obs = np.full((4, 2), 7.0, np.float32)
+    for _ in range(75):
+        buf.add(obs, obs, np.zeros((4, 1), np.float32), np.zeros(4, np.float32),
+                np.zeros(4, bool), [{}] * 4)
+    buf.demo_count = lambda: 100.0
+    assert buf.demo_share() == pytest.approx(100 / 400)
+    np.random.seed(0)
+    batch = buf.sample(4000)
+    is_demo = batch.observations[:, 0].numpy() != 7.0
+    assert abs(is_demo.mean() - 0.25) < 0.02  # binomial sd 0.007
+    # Every demo row: o_t of the demo with the n-step return of reward alpha, cut at T.
+    d_obs = np.asarray(demo.obs[0, :-1])
+    t = np.array([np.flatnonzero(np.all(d_obs == o, 1))[0]
+                  for o in batch.observations[is_demo].numpy()])
+    n = np.minimum(cfg.n_step, 128 - t)
+    expect = cfg.alpha * (1 - cfg.gamma ** n) / (1 - cfg.gamma)
+    np.testing.assert_allclose(batch.rewards[is_demo, 0].numpy(), expect, rtol=1e-5)
+    np.testing.assert_allclose(batch.discounts[is_demo, 0].numpy(), cfg.gamma ** n, rtol=1e-5)
+    assert np.all(batch.rewards[~is_demo].numpy() == 0)
+
+
+@pytest.mark.parametrize("budget_steps,steps,expect", [
+    (200_000, 5_000, 10_000),     # 5% of the budget, at any point of the run
+    (200_000, 150_000, 10_000),
+    (50_000, 1_000, 2_500),
+    (1_000_000, 10, 50_000),      # the original's 50,000 at its 1M steps
+    (4_000_000, 10, 50_000),      # never more than `prefill`
+])
+def test_demo_count_is_a_fixed_fraction_of_the_step_budget(budget_steps, steps, expect):
+    from methods.pwil.train import demo_count
+    count = demo_count(PWILConfig(), lambda: steps, lambda s: s / budget_steps)
+    assert count() == pytest.approx(expect)
+
+
+def test_demo_count_on_a_seconds_budget_projects_the_runs_env_steps():
+    from methods.pwil.train import demo_count
+    # Half the time spent after 30,000 steps: the run will take ~60,000; 5% of that.
+    count = demo_count(PWILConfig(), lambda: 30_000, lambda s: 0.5)
+    assert count() == pytest.approx(3_000)
+
+
+HELD_OUT_TASKS = ["pointmass", "inverted_pendulum", "reacher", "acrobot", "hopper",
+                  pytest.param("swimmer", marks=pytest.mark.slow),
+                  pytest.param("walker2d", marks=pytest.mark.slow),
+                  pytest.param("ant", marks=pytest.mark.slow),
+                  pytest.param("humanoid", marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("name", HELD_OUT_TASKS)
+def test_reward_of_held_out_expert_episodes_is_far_above_a_random_policys(name):
+    """The reward carries signal: the task's other expert episodes (demos 2..K, never shown
+    to the method) earn at least a tenth of alpha per step on average and at least five
+    times a uniformly random policy's mean reward. With the scale floor at 0 (a raw
+    StandardScaler on one demo) reacher's held-out episodes earned 0.013 alpha."""
+    import jax
+    import jax.numpy as jnp
+
+    task = make_task(name)
+    demo = load_demo(task.spec.demo_path, task)
+    T = demo.length
+    cfg = PWILConfig(horizon=T)
+    atoms, _, _ = pwil.expert_atoms(demo, cfg)  # demo 0 alone, as the method sees it
+
+    def mean_reward(obs, act):
+        r = PWILRewarder(atoms, len(obs), T, cfg.alpha, cfg.beta, cfg.scale_floor)
+        return np.mean([r.rewards(pwil.features(obs[:, t], act[:, t], True)) for t in range(T)])
+
+    held = mean_reward(np.asarray(demo.obs[1:, :-1]), np.asarray(demo.actions[1:]))
+    n = 16
+    acts = jax.random.uniform(jax.random.PRNGKey(0), (T, n, task.action_size), minval=-1,
+                              maxval=1)
+
+    @jax.jit
+    def rollout(key, acts):
+        def step(s, a):
+            return jax.vmap(task.env.step)(s, a), s.obs
+        return jax.lax.scan(step, jax.vmap(task.env.reset)(jax.random.split(key, n)), acts)[1]
+
+    obs = np.swapaxes(np.asarray(rollout(jax.random.PRNGKey(1), acts)), 0, 1)
+    rand = mean_reward(obs, np.swapaxes(np.asarray(acts), 0, 1))
+    assert held >= 0.1 * cfg.alpha, (held, rand)
+    assert held >= 5 * rand, (held, rand)
 
 
 def test_pwil_horizon_is_the_tasks_episode_length():

@@ -3,6 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import torch
 from brax.envs.base import Wrapper
 
 from bench.access import TaskView
@@ -130,3 +131,87 @@ def test_rl_imitation_methods_respect_the_step_budget_and_record_throughput(stor
     assert abs(rec["train_metrics"]["train/updates"] - (1024 - 256)) <= 64
     assert rec["curve"] and rec["final_from"] == "final policy"
     assert np.isfinite(rec["final_return"])
+
+
+def test_obs_normalizer_equals_the_statistics_of_everything_it_was_given():
+    from methods.common.sb3 import ObsNormalizer
+    rng = np.random.default_rng(0)
+    parts = [rng.normal(3.0, 50.0, (129, 4)), rng.normal(-1.0, 0.1, (16, 4)),
+             rng.normal(0.0, 1.0, (1, 4))]
+    norm = ObsNormalizer(4, init=parts[0])
+    for p in parts[1:]:
+        norm.update(p)
+    x = np.concatenate(parts)
+    np.testing.assert_allclose(norm.var, x.var(0), rtol=1e-10)
+    np.testing.assert_allclose(norm.mean.numpy(), x.mean(0), rtol=1e-6)
+    # Applied: clip((x - mean) / sqrt(var + eps), -10, 10); a trailing indicator passes.
+    y = np.concatenate([x, np.ones((len(x), 1))], 1).astype(np.float32)
+    z = norm(torch.from_numpy(y)).numpy()
+    want = np.clip((x - x.mean(0)) / np.sqrt(x.var(0) + 1e-4), -10, 10)
+    np.testing.assert_allclose(z[:, :4], want, rtol=1e-4, atol=1e-5)
+    assert np.all(z[:, 4] == 1.0)
+
+
+@pytest.mark.parametrize("method", ["dac", "pwil"])
+def test_learners_networks_read_observations_normalized_by_shared_running_statistics(method):
+    """Replaces learners that fed raw observations (hopper's reach |x| = 5.7, humanoid's
+    139) to the actor, the critics and DAC's discriminator: every network now reads
+    (o - mean) / std with one set of statistics, the demo's observations and every collected
+    one, and an evaluation snapshot keeps the statistics of its moment."""
+    import importlib
+    import sys
+
+    from bench.access import DemoView
+    from methods.dac.config import DACConfig
+    from methods.pwil.config import PWILConfig
+    from tasks.demo import load_demo
+    importlib.import_module(f"methods.{method}")
+    mod = sys.modules[f"methods.{method}.train"]
+    task = make_task("hopper")
+    demo = DemoView(load_demo(task.spec.demo_path, task),
+                    Uses(demo_states=True, demo_actions=True), method)
+    small = dict(actor_hidden=(16,), critic_hidden=(16,), num_envs=4, steps_per_collect=4,
+                 learning_starts=64, batch_size=16)
+    if method == "dac":
+        model = mod.make_learner(task.env, T, demo, DACConfig(**small, disc_hidden=(16,),
+                                                              disc_batch=16), seed=0)
+    else:
+        model, _ = mod.make_learner(task.env, T, demo, PWILConfig(**small), seed=0)
+    seen = []
+    venv = model.get_env()
+    inner = venv.venv  # the batched brax env under the method's wrapper
+    wait, reset = inner.step_wait, inner.reset
+
+    def record():
+        out = wait()
+        seen.append(out[0])
+        return out
+
+    def record_reset():
+        out = reset()
+        seen.append(out)
+        return out
+    inner.step_wait, inner.reset = record, record_reset
+    model.learn(total_timesteps=96)
+    norm = model.actor.features_extractor
+    everything = np.concatenate([np.asarray(demo.obs[0, :-1])] + seen).astype(np.float64)
+    np.testing.assert_allclose(norm.obs_mean.numpy(), everything.mean(0), rtol=1e-4,
+                               atol=1e-5)
+    np.testing.assert_allclose(norm.obs_inv_std.numpy(), 1 / np.sqrt(everything.var(0) + 1e-4),
+                               rtol=1e-3)
+    nets = [model.actor, model.actor_target, model.critic, model.critic_target]
+    for net in nets:  # one set of statistics, not copies
+        assert net.features_extractor.obs_mean.data_ptr() == norm.obs_mean.data_ptr()
+    x = torch.from_numpy(everything.astype(np.float32))
+    if method == "dac":
+        x = torch.cat([x, torch.zeros(len(x), 1)], 1)
+        assert model.discriminator.normalizer.mean.data_ptr() == norm.obs_mean.data_ptr()
+        assert np.all(norm(x).numpy()[:, -1] == 0)  # the absorbing indicator passes through
+    z = norm(x).numpy()[:, :task.obs_size]
+    assert np.abs(z.mean(0)).max() < 1e-3 and np.all(np.abs(z) <= 10)
+    # A snapshot keeps its statistics while the learner's move on.
+    pol = torch_policy(model.actor)
+    before = pol.params["features_extractor.obs_mean"].copy()
+    model.learn(total_timesteps=32, reset_num_timesteps=False)
+    assert not np.allclose(norm.obs_mean.numpy(), before)
+    np.testing.assert_array_equal(pol.params["features_extractor.obs_mean"], before)

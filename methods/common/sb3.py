@@ -9,6 +9,9 @@
 - `BudgetCallback`: stops SB3's learn() when the harness budget is spent and reports to the
   RunContext (which evaluates with the method's clock paused), with env-steps/s and updates/s.
 - `torch_policy`: a torch module snapshot as a harness 'host' Policy for the shared evaluator.
+- `ObsNormalizer` / `NormalizedObs`: running observation statistics shared by the actor, the
+  critics (and DAC's discriminator), applied inside the networks so that the replay keeps
+  raw observations and every sample is normalized with the current statistics.
 
 The env handed in is the method's gated TaskView env: without Uses(true_reward) its rewards
 are NaN, so a learner can only ever train on the imitation reward its method computes.
@@ -24,6 +27,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv
 
 from bench.api import Policy
@@ -153,6 +157,75 @@ class BraxGymEnv(gym.Env):
                 truncated, {})
 
 
+class ObsNormalizer:
+    """Running mean and variance of the first `dim` features of an observation (Chan's
+    parallel update, float64 on the host), applied as clip((x - mean) / sqrt(var + eps),
+    -clip, clip). Features past `dim` (DAC's absorbing indicator) pass through unchanged.
+
+    The statistics live in two float32 tensors that every `NormalizedObs` and the
+    discriminator share (updated in place), so one update reaches all of them and a module's
+    `state_dict()` (an evaluation snapshot) holds the values of that moment. They start from
+    the demo's observations (information every imitation method is given) and take in every
+    observation the learner collects."""
+
+    def __init__(self, dim: int, init: np.ndarray | None = None, clip: float = 10.0,
+                 eps: float = 1e-4, device: str = "cpu"):
+        if clip <= 0 or eps <= 0:
+            raise ValueError(f"clip and eps must be > 0, got clip={clip}, eps={eps}")
+        self.dim, self.clip, self.eps = int(dim), float(clip), float(eps)
+        self.count = 0.0
+        self._mean = np.zeros(self.dim)
+        self._m2 = np.zeros(self.dim)
+        # On the learner's device from the start: moving a module there keeps these tensors.
+        self.mean = torch.zeros(self.dim, device=device)
+        self.inv_std = torch.ones(self.dim, device=device) / np.sqrt(1.0 + self.eps)
+        if init is not None:
+            self.update(init)
+
+    def update(self, x: np.ndarray) -> None:
+        x = np.asarray(x, np.float64).reshape(-1, self.dim)
+        n = len(x)
+        if n == 0:
+            return
+        mean, m2 = x.mean(0), ((x - x.mean(0)) ** 2).sum(0)
+        total = self.count + n
+        delta = mean - self._mean
+        self._mean = self._mean + delta * n / total
+        self._m2 = self._m2 + m2 + delta ** 2 * self.count * n / total
+        self.count = total
+        self.mean.copy_(torch.from_numpy(self._mean.astype(np.float32)))
+        self.inv_std.copy_(torch.from_numpy(
+            (1.0 / np.sqrt(self._m2 / total + self.eps)).astype(np.float32)))
+
+    @property
+    def var(self) -> np.ndarray:
+        return self._m2 / max(self.count, 1.0)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return normalize_features(x, self.mean, self.inv_std, self.clip)
+
+
+def normalize_features(x: torch.Tensor, mean: torch.Tensor, inv_std: torch.Tensor,
+                       clip: float) -> torch.Tensor:
+    d = mean.shape[-1]
+    z = ((x[..., :d] - mean) * inv_std).clamp(-clip, clip)
+    return z if x.shape[-1] == d else torch.cat([z, x[..., d:]], -1)
+
+
+class NormalizedObs(BaseFeaturesExtractor):
+    """SB3 features extractor: the observation normalized by a shared `ObsNormalizer`. Its
+    two statistics are buffers of this module that are the normalizer's own tensors."""
+
+    def __init__(self, observation_space: gym.spaces.Box, normalizer: ObsNormalizer):
+        super().__init__(observation_space, int(observation_space.shape[0]))
+        self.clip = normalizer.clip
+        self.register_buffer("obs_mean", normalizer.mean, persistent=True)
+        self.register_buffer("obs_inv_std", normalizer.inv_std, persistent=True)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return normalize_features(obs.float(), self.obs_mean, self.obs_inv_std, self.clip)
+
+
 def torch_policy(module: torch.nn.Module, obs_fn: Callable[[np.ndarray], np.ndarray] = None,
                  noise_std: float = 0.0) -> Policy:
     """Snapshot `module` (obs -> action in [-1, 1]) as a 'host' Policy.
@@ -173,10 +246,12 @@ class _TorchAct:
         x = np.array(obs, np.float32)  # a writable copy (jax hands out read-only arrays)
         if self.obs_fn is not None:
             x = self.obs_fn(x)
-        tensors = {k: torch.from_numpy(v) for k, v in params.items()}
+        device = next(iter(self.module.state_dict().values())).device
+        tensors = {k: torch.from_numpy(v).to(device) for k, v in params.items()}
         with torch.no_grad():
-            a = torch.func.functional_call(self.module, tensors, (torch.from_numpy(x),))
-        a = a.numpy()
+            a = torch.func.functional_call(self.module, tensors,
+                                           (torch.from_numpy(x).to(device),))
+        a = a.cpu().numpy()
         if not deterministic and self.noise_std > 0:
             a = np.clip(a + rng.normal(0.0, self.noise_std, a.shape), -1.0, 1.0)
         return a.astype(np.float32)
@@ -221,11 +296,16 @@ def check_collection(config) -> None:
                          f"of num_envs ({config.num_envs})")
 
 
-def td3_kwargs(env, config, learning_rate: float, seed: int) -> dict:
+def td3_kwargs(env, config, learning_rate: float, seed: int,
+               normalizer: ObsNormalizer | None = None) -> dict:
     """SB3 TD3 arguments the TD3-based learners share, from their configs' common fields:
     `steps_per_collect` env steps over `num_envs` envs per collection, then
-    updates_per_step x that many updates; Gaussian exploration; actor/critic sizes; CPU."""
+    updates_per_step x that many updates; Gaussian exploration; actor/critic sizes; the
+    observation normalizer (if any) inside the actor and critics; the config's device."""
     act_dim = env.action_space.shape[0]
+    extractor = ({} if normalizer is None else
+                 dict(features_extractor_class=NormalizedObs,
+                      features_extractor_kwargs=dict(normalizer=normalizer)))
     return dict(
         policy="MlpPolicy", env=env, learning_rate=learning_rate,
         buffer_size=config.buffer_size, learning_starts=config.learning_starts,
@@ -235,8 +315,18 @@ def td3_kwargs(env, config, learning_rate: float, seed: int) -> dict:
         action_noise=NormalActionNoise(np.zeros(act_dim),
                                        config.exploration_noise * np.ones(act_dim)),
         policy_kwargs=dict(net_arch=dict(pi=list(config.actor_hidden),
-                                         qf=list(config.critic_hidden))),
-        seed=seed, device="cpu", verbose=0)
+                                         qf=list(config.critic_hidden)), **extractor),
+        seed=seed, device=torch_device(getattr(config, "device", "cpu")), verbose=0)
+
+
+def torch_device(name: str) -> str:
+    """The torch device for a learner's `device` field: 'cpu', 'cuda', or 'auto' (CUDA when
+    torch sees a GPU, else the CPU)."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {name!r}")
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
 
 
 def learn_within_budget(model, ctx, make_policy: Callable[[], Policy], report_every: int,

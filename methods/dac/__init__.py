@@ -11,4 +11,5 @@ METHOD = MethodSpec(
     description="TD3 on a discriminator reward (logit of D(s, a)) with gradient penalty and "
                 "absorbing states",
     presets=PRESETS,
+    version="2",
 )

@@ -61,6 +61,15 @@ class DACConfig:
     on a CPU (see the benchmark)."""
     report_every: int = 2048
     """Env steps between reports to the harness (evaluation happens there when due)."""
+    normalize_obs: bool = True
+    """Running observation normalization inside the actor, the critics and the discriminator
+    (`methods.common.sb3.ObsNormalizer`; the absorbing indicator passes through). The
+    original fed raw observations; Brax observations reach |x| = 139 (humanoid), where
+    tanh discriminator units and ReLU critics at the original's rates saturate."""
+    device: str = "auto"
+    """torch device of the learner: 'auto' (CUDA where torch sees a GPU, else the CPU), 'cpu'
+    or 'cuda'. The pinned torch is the CPU build; a CUDA build of the same version puts the
+    learner on the GPU with nothing else to change."""
 
     def __post_init__(self):
         if self.torch_threads < 0:
@@ -78,6 +87,8 @@ class DACConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         check_collection(self)
+        if self.device not in ("cpu", "cuda", "auto"):
+            raise ValueError(f"device must be 'cpu', 'cuda' or 'auto', got {self.device!r}")
         if self.gp_weight < 0:
             raise ValueError(f"gp_weight must be >= 0, got {self.gp_weight}")
 

@@ -21,8 +21,9 @@ from stable_baselines3.common.utils import polyak_update, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
-from methods.common.sb3 import (BraxVecEnv, learn_within_budget, seed_everything,
-                                set_torch_threads, td3_kwargs, torch_policy)
+from methods.common.sb3 import (BraxVecEnv, ObsNormalizer, learn_within_budget,
+                                seed_everything, set_torch_threads, td3_kwargs, torch_device,
+                                torch_policy)
 from methods.dac.config import DACConfig
 
 import gymnasium as gym
@@ -46,17 +47,23 @@ class AbsorbingWrapper(VecEnvWrapper):
     """Adds the indicator dimension; on true termination (never on the time limit) the
     terminal observation handed to the learner is the absorbing state."""
 
-    def __init__(self, venv):
+    def __init__(self, venv, normalizer: ObsNormalizer | None = None):
         d = venv.observation_space.shape[0]
         space = gym.spaces.Box(-np.inf, np.inf, (d + 1,), np.float32)
         super().__init__(venv, observation_space=space)
         self._absorbing = absorbing_state(d)
+        self.normalizer = normalizer
 
     def reset(self):
-        return add_indicator(self.venv.reset())
+        obs = self.venv.reset()
+        if self.normalizer is not None:
+            self.normalizer.update(obs)
+        return add_indicator(obs)
 
     def step_wait(self):
         obs, _, dones, infos = self.venv.step_wait()
+        if self.normalizer is not None:
+            self.normalizer.update(obs)
         infos = [dict(i) for i in infos]
         for i in np.flatnonzero(dones):
             if infos[i].get("terminated"):
@@ -130,13 +137,15 @@ def gradient_penalty(logit_fn, x_policy: torch.Tensor, x_expert: torch.Tensor,
 
 
 class Discriminator(torch.nn.Module):
-    """D(s, a) -> logit; expert = 1, policy = 0."""
+    """D(s, a) -> logit; expert = 1, policy = 0. With a `normalizer`, the observation part of
+    its input is normalized first (the gradient penalty is then taken in normalized units)."""
 
     def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), lr: float = 1e-3,
-                 gp_weight: float = 10.0):
+                 gp_weight: float = 10.0, normalizer: ObsNormalizer | None = None):
         super().__init__()
         self.net = _ortho_mlp((obs_dim + act_dim, *hidden, 1), torch.nn.Tanh)
         self.gp_weight = gp_weight
+        self.normalizer = normalizer
         # Not fused=True: it saved ~10% of a discriminator update (within the benchmark's
         # noise), but its different rounding sent the DAC canary's seed 0 from 0.65 to -12.2
         # (4k steps on pointmass: a run that sensitive to the last bit), so the plain step
@@ -146,8 +155,13 @@ class Discriminator(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
 
+    def inputs(self, obs, act) -> torch.Tensor:
+        if self.normalizer is not None:
+            obs = self.normalizer(obs)
+        return torch.cat([obs, act], dim=-1)
+
     def logits(self, obs, act) -> torch.Tensor:
-        return self.net(torch.cat([obs, act], dim=-1))
+        return self.net(self.inputs(obs, act))
 
     @torch.no_grad()
     def reward(self, obs, act) -> torch.Tensor:
@@ -155,14 +169,14 @@ class Discriminator(torch.nn.Module):
         return self.logits(obs, act)
 
     def loss(self, pol_obs, pol_act, exp_obs, exp_act, u=None, stats: bool = True):
-        x_pol = torch.cat([pol_obs, pol_act], -1)
-        x_exp = torch.cat([exp_obs, exp_act], -1)
+        x_pol = self.inputs(pol_obs, pol_act)
+        x_exp = self.inputs(exp_obs, exp_act)
         logits = self.net(torch.cat([x_pol, x_exp], 0))
         lp, le = logits[: len(x_pol)], logits[len(x_pol):]
         bce = (F.binary_cross_entropy_with_logits(le, torch.ones_like(le))
                + F.binary_cross_entropy_with_logits(lp, torch.zeros_like(lp)))
         if u is None:
-            u = torch.rand(len(x_pol), 1)
+            u = torch.rand(len(x_pol), 1, device=x_pol.device)
         gp = gradient_penalty(self.net, x_pol, x_exp, u)
         out = {}
         if stats:  # host syncs: only when reported
@@ -192,8 +206,8 @@ class DACTD3(TD3):
                  expert_actions: np.ndarray, dac: DACConfig, **kwargs):
         super().__init__(*args, **kwargs)
         self.discriminator = discriminator
-        self.expert_obs = torch.as_tensor(expert_obs)
-        self.expert_actions = torch.as_tensor(expert_actions)
+        self.expert_obs = torch.as_tensor(expert_obs, device=self.device)
+        self.expert_actions = torch.as_tensor(expert_actions, device=self.device)
         self.dac = dac
         self.critic_updates = 0
         self.actor_updates = 0
@@ -226,7 +240,7 @@ class DACTD3(TD3):
         self._disc_owed -= n_disc
         for k in range(n_disc):
             pol = self.replay_buffer.sample(cfg.disc_batch)
-            i = torch.randint(0, n_exp, (cfg.disc_batch,))
+            i = torch.randint(0, n_exp, (cfg.disc_batch,), device=self.device)
             self._dstats = self.discriminator.update(pol.observations, pol.actions,
                                                      self.expert_obs[i], self.expert_actions[i],
                                                      stats=k == n_disc - 1)
@@ -294,18 +308,23 @@ def expert_transitions(demo, config: DACConfig, rng: np.random.Generator):
     return add_indicator(o), a
 
 
-def td3_settings(env, config: DACConfig, seed: int) -> dict:
+def td3_settings(env, config: DACConfig, seed: int,
+                 normalizer: ObsNormalizer | None = None) -> dict:
     """SB3 TD3 arguments with DAC's values (also the plain-TD3 baseline of the benchmark)."""
-    return dict(td3_kwargs(env, config, config.critic_lr, seed), policy_delay=config.policy_delay,
+    return dict(td3_kwargs(env, config, config.critic_lr, seed, normalizer),
+                policy_delay=config.policy_delay,
                 target_policy_noise=config.target_noise,
                 target_noise_clip=config.target_noise_clip)
 
 
-def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int) -> DACTD3:
+def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int,
+                normalizer: ObsNormalizer | None = None) -> DACTD3:
     """The DAC learner on `env` (an AbsorbingWrapper'ed vector env)."""
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    disc = Discriminator(obs_dim, act_dim, config.disc_hidden, config.disc_lr, config.gp_weight)
-    model = DACTD3(**td3_settings(env, config, seed), replay_buffer_class=FlatReplayBuffer,
+    disc = Discriminator(obs_dim, act_dim, config.disc_hidden, config.disc_lr, config.gp_weight,
+                         normalizer).to(torch_device(config.device))
+    model = DACTD3(**td3_settings(env, config, seed, normalizer),
+                   replay_buffer_class=FlatReplayBuffer,
                    discriminator=disc, expert_obs=expert_obs, expert_actions=expert_actions,
                    dac=config)
     orthogonal_td3_init(model)
@@ -315,9 +334,14 @@ def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int) -
 def make_learner(env, episode_length: int, demo, config: DACConfig, seed: int) -> DACTD3:
     """DAC on `num_envs` copies of the (gated) brax env, with the demo's subsampled expert
     transitions."""
-    venv = AbsorbingWrapper(BraxVecEnv(env, config.num_envs, episode_length, seed))
+    normalizer = None
+    if config.normalize_obs:
+        demo_obs = np.asarray(demo.obs, np.float32)[:, :-1]
+        normalizer = ObsNormalizer(demo_obs.shape[-1], init=demo_obs.reshape(-1, demo_obs.shape[-1]),
+                                   device=torch_device(config.device))
+    venv = AbsorbingWrapper(BraxVecEnv(env, config.num_envs, episode_length, seed), normalizer)
     expert_obs, expert_act = expert_transitions(demo, config, np.random.default_rng(seed))
-    return build_model(venv, config, expert_obs, expert_act, seed)
+    return build_model(venv, config, expert_obs, expert_act, seed, normalizer)
 
 
 def train(task, demo, config: DACConfig, ctx, seed: int) -> TrainResult:

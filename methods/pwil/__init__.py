@@ -10,5 +10,6 @@ METHOD = MethodSpec(
     uses=Uses(demo_states=True, demo_actions=True),
     description="TD3 on a greedy Wasserstein-coupling reward to the demo's (s, a) atoms",
     presets=PRESETS,
+    version="2",
     task_overrides=TASK_OVERRIDES,
 )

@@ -16,15 +16,22 @@ import numpy as np
 
 class PWILRewarder:
     def __init__(self, expert_atoms: np.ndarray, num_envs: int, horizon: int,
-                 alpha: float = 5.0, beta: float = 5.0, std_floor: float = 1e-6):
+                 alpha: float = 5.0, beta: float = 5.0, scale_floor: float = 0.2):
         atoms = np.asarray(expert_atoms, np.float64)
         if atoms.ndim != 2 or len(atoms) < 1:
             raise ValueError(f"expert atoms must be (N, d) with N >= 1, got {atoms.shape}")
-        # Standardization (the original: sklearn StandardScaler fit on the demo atoms;
-        # zero-variance features get scale 1, as StandardScaler does).
+        # Standardization (the original: sklearn StandardScaler fit on the demo atoms), with
+        # each feature's scale floored at `scale_floor` (in the feature's own units): one
+        # 128-step demo shows almost no spread in some features that differ between expert
+        # episodes (reacher's fingertip-to-target offsets, std 0.012 within the demo), and a
+        # raw 1/std there lets that one feature decide every distance. A floor of 0 is the
+        # original's StandardScaler (zero-variance features get scale 1).
+        if scale_floor < 0:
+            raise ValueError(f"scale_floor must be >= 0, got {scale_floor}")
         self.mean = atoms.mean(0)
         std = atoms.std(0)
-        self.scale = np.where(std < std_floor, 1.0, std)
+        self.scale = (np.maximum(std, scale_floor) if scale_floor > 0
+                      else np.where(std < 1e-6, 1.0, std))
         self.atoms = (atoms - self.mean) / self.scale
         self.num_atoms, self.dim = self.atoms.shape
         self.num_envs = int(num_envs)

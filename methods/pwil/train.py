@@ -2,18 +2,24 @@
 
 The reward is computed online from (o_t, a_t) before each env step (as the original), by a
 VecEnv wrapper around the batched brax env; the learner is plain SB3 TD3 (n-step replay),
-so the imitation reward is the only thing PWIL adds to the RL loop.
+so the imitation reward is the only thing PWIL adds to the RL loop. The demo's transitions
+(reward alpha) are stored once and sampled in the proportion of the original's prefill
+scaled to the run's budget (`DemoMixReplay`).
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
+import torch
 from stable_baselines3 import TD3
 from stable_baselines3.common.buffers import NStepReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
-from methods.common.sb3 import (BraxVecEnv, learn_within_budget, seed_everything,
-                                set_torch_threads, td3_kwargs, torch_policy)
+from methods.common.sb3 import (BraxVecEnv, ObsNormalizer, learn_within_budget,
+                                seed_everything, set_torch_threads, td3_kwargs, torch_policy)
 from methods.pwil.config import PWILConfig
 from methods.pwil.rewarder import PWILRewarder
 
@@ -33,16 +39,20 @@ def expert_atoms(demo, config: PWILConfig) -> tuple[np.ndarray, np.ndarray, np.n
 class PWILReward(VecEnvWrapper):
     """Replaces the (hidden) env reward with PWIL's; resets the coupling at episode ends."""
 
-    def __init__(self, venv, rewarder: PWILRewarder, use_actions: bool):
+    def __init__(self, venv, rewarder: PWILRewarder, use_actions: bool,
+                 normalizer: ObsNormalizer | None = None):
         super().__init__(venv)
         self.rewarder = rewarder
         self.use_actions = use_actions
+        self.normalizer = normalizer
         self._obs = None
         self._rewards = None
 
     def reset(self):
         self._obs = self.venv.reset()
         self.rewarder.reset()
+        if self.normalizer is not None:
+            self.normalizer.update(self._obs)
         return self._obs
 
     def step_async(self, actions):
@@ -52,43 +62,102 @@ class PWILReward(VecEnvWrapper):
     def step_wait(self):
         obs, _, dones, infos = self.venv.step_wait()
         self.rewarder.reset(dones)
+        if self.normalizer is not None:
+            self.normalizer.update(obs)
         self._obs = obs
         return obs, self._rewards.astype(np.float32), dones, infos
 
 
-def prefill(model: TD3, demo_obs, demo_act, reward: float, count: int) -> int:
-    """Put `count` demo transitions (the demo repeated, in order, in every env column so that
-    n-step returns stay inside one demo pass) into replay with a constant reward."""
-    buf, n = model.replay_buffer, model.n_envs
-    T = len(demo_act)
-    rows = int(np.ceil(count / n))
-    for r in range(rows):
-        t = r % T
-        last = t == T - 1
-        buf.add(np.repeat(demo_obs[t][None], n, 0), np.repeat(demo_obs[t + 1][None], n, 0),
-                np.repeat(demo_act[t][None], n, 0), np.full(n, reward, np.float32),
-                np.full(n, last), [{"TimeLimit.truncated": last}] * n)
-    return rows * n
+class DemoMixReplay(NStepReplayBuffer):
+    """The agent's n-step replay plus the demo's T transitions (reward alpha) stored once. A
+    batch draws each row from the demo with probability D / (D + A), where A is the number of
+    agent transitions stored and D = `demo_count()`, the number of demo transitions the
+    replay stands for: the same distribution as one buffer prefilled with D copies of the
+    demo's transitions, without storing them. Demo rows' n-step returns stay inside the
+    demo (its last step is a time-limit end)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.demo: NStepReplayBuffer | None = None
+        self.demo_count: Callable[[], float] = lambda: 0.0
+        self.demo_rows_sampled = 0
+
+    def set_demo(self, demo_obs: np.ndarray, demo_act: np.ndarray, reward: float,
+                 demo_count: Callable[[], float]) -> None:
+        T = len(demo_act)
+        buf = NStepReplayBuffer(T, self.observation_space, self.action_space, self.device,
+                                n_envs=1, n_steps=self.n_steps, gamma=self.gamma)
+        for t in range(T):
+            last = t == T - 1
+            buf.add(demo_obs[t][None], demo_obs[t + 1][None], demo_act[t][None],
+                    np.array([reward], np.float32), np.array([last]),
+                    [{"TimeLimit.truncated": last}])
+        self.demo, self.demo_count = buf, demo_count
+
+    def demo_share(self) -> float:
+        """The probability that a sampled row is a demo transition."""
+        if self.demo is None:
+            return 0.0
+        d, a = float(self.demo_count()), float(self.size() * self.n_envs)
+        return d / (d + a) if d + a > 0 else 0.0
+
+    def sample(self, batch_size: int, env=None) -> ReplayBufferSamples:
+        k = int(np.random.binomial(batch_size, self.demo_share()))
+        if k == 0:
+            return super().sample(batch_size, env)
+        self.demo_rows_sampled += k
+        demo = self.demo._get_samples(np.random.randint(0, self.demo.buffer_size, size=k), env)
+        if k == batch_size:
+            return demo
+        agent = super().sample(batch_size - k, env)
+        return ReplayBufferSamples(*(torch.cat([a, b]) for a, b in zip(agent, demo)))
 
 
-def build_model(env, config: PWILConfig, seed: int) -> TD3:
+def demo_count(config: PWILConfig, env_steps: Callable[[], int],
+               spent: Callable[[int], float] | None) -> Callable[[], float]:
+    """D, the demo transitions the replay stands for: min(prefill, prefill_fraction x the
+    run's env steps), the run's env steps read from the budget's spent fraction (exact on an
+    env-step budget, projected from the rate so far on a seconds budget); `prefill` where
+    there is no budget to read."""
+    if spent is None:
+        return lambda: float(config.prefill)
+
+    def count() -> float:
+        steps = env_steps()
+        frac = spent(steps)
+        if frac <= 0:
+            return float(config.prefill)
+        return float(min(config.prefill, config.prefill_fraction * steps / frac))
+    return count
+
+
+def build_model(env, config: PWILConfig, seed: int,
+                normalizer: ObsNormalizer | None = None) -> TD3:
     """The PWIL learner: plain SB3 TD3 with n-step replay (the reward arrives through the env
-    wrapper)."""
-    return TD3(**td3_kwargs(env, config, config.learning_rate, seed),
-               replay_buffer_class=NStepReplayBuffer,
+    wrapper); the demo part of the replay is set by `make_learner`."""
+    return TD3(**td3_kwargs(env, config, config.learning_rate, seed, normalizer),
+               replay_buffer_class=DemoMixReplay,
                replay_buffer_kwargs=dict(n_steps=config.n_step, gamma=config.gamma))
 
 
-def make_learner(env, episode_length: int, demo, config: PWILConfig, seed: int):
-    """(model, atoms, prefilled): TD3 on `num_envs` copies of the (gated) brax env rewarded
-    by PWIL, replay prefilled with demo transitions."""
+def make_learner(env, episode_length: int, demo, config: PWILConfig, seed: int,
+                 spent: Callable[[int], float] | None = None):
+    """(model, atoms): TD3 on `num_envs` copies of the (gated) brax env rewarded by PWIL,
+    its replay mixing in the demo's transitions (`DemoMixReplay`, D from `demo_count`)."""
     atoms, demo_obs, demo_act = expert_atoms(demo, config)
-    rewarder = PWILRewarder(atoms, config.num_envs, config.horizon, config.alpha, config.beta)
+    rewarder = PWILRewarder(atoms, config.num_envs, config.horizon, config.alpha, config.beta,
+                            scale_floor=config.scale_floor)
+    normalizer = None
+    if config.normalize_obs:
+        from methods.common.sb3 import torch_device
+        normalizer = ObsNormalizer(demo_obs.shape[-1], init=demo_obs[:-1],
+                                   device=torch_device(config.device))
     venv = PWILReward(BraxVecEnv(env, config.num_envs, episode_length, seed), rewarder,
-                      config.use_actions)
-    model = build_model(venv, config, seed)
-    filled = prefill(model, demo_obs, demo_act, config.alpha, config.prefill)
-    return model, atoms, filled
+                      config.use_actions, normalizer)
+    model = build_model(venv, config, seed, normalizer)
+    model.replay_buffer.set_demo(demo_obs, demo_act, config.alpha,
+                                 demo_count(config, lambda: model.num_timesteps, spent))
+    return model, atoms
 
 
 def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
@@ -98,15 +167,18 @@ def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
         raise ValueError(f"pwil horizon T={config.horizon} must equal task {task.name!r}'s "
                          f"episode length {task.episode_length} (the agent's mass is 1/T per "
                          f"step); fix: --set horizon={task.episode_length}")
-    model, atoms, filled = make_learner(task.env, task.episode_length, demo, config, seed)
+    model, atoms = make_learner(task.env, task.episode_length, demo, config, seed, ctx.spent)
 
     def policy():
         return torch_policy(model.actor, noise_std=config.exploration_noise)
 
     def metrics():
-        return {"train/replay_size": model.replay_buffer.size() * model.n_envs}
+        buf = model.replay_buffer
+        return {"train/replay_size": buf.size() * model.n_envs,
+                "train/demo_count": buf.demo_count(), "train/demo_share": buf.demo_share(),
+                "train/demo_rows_sampled": buf.demo_rows_sampled}
 
     cb = learn_within_budget(model, ctx, policy, config.report_every, metrics)
     return TrainResult(policy(), env_steps=int(model.num_timesteps),
-                       metrics={**cb.throughput(), **metrics(), "train/prefilled": filled,
+                       metrics={**cb.throughput(), **metrics(),
                                 "train/expert_atoms": len(atoms)})
