@@ -61,18 +61,14 @@ SUITE: tuple[Canary, ...] = (
     # ILD from scratch (no BC warm start): the score comes from the physics gradients alone.
     Canary("ild", "pointmass", 30 * 8 * 128, (("num_envs", 8), ("hidden", "(64, 64)"),
                                               ("bc_updates", 0), ("updates", 30))),
-    # DAC stands for the SB3 path (vector env, replay, torch policy snapshot). PWIL (~2 min
-    # per seed here at 4k steps) and the references are left to the leaderboard.
-    # One torch thread: torch's CPU kernels round differently at another thread count, so
-    # the canary would otherwise depend on the CI machine's cores. 16384 steps: at 4096 DAC
-    # has not converged on pointmass and a rounding change moves a seed anywhere from 0.65 to
-    # -12 (2 threads vs the 1-thread reference failed CI at -4.85); at 8192 six seeds all
-    # landed in 0.97-1.03, whatever the thread count, on session 18's machine. On session
-    # 60's (another CPU) seed 0 had not converged by 8192 (0.411 against the reference's
-    # 1.010; seed 1 1.025 against 1.026), so CI failed there on unchanged DAC code. 16384:
-    # there seeds 0-3 converged by 12288 (0.99, 1.04, 1.02, 0.99) and end at 1.013, 0.932,
-    # 1.015, 0.996 (README, CI regression gate).
-    Canary("dac", "pointmass", 16384, (("torch_threads", 1),)),
+    # DAC stands for the SB3 path (vector env, observation normalizer, replay, torch policy
+    # snapshot). PWIL and the references are left to the leaderboard. One torch thread:
+    # torch's CPU kernels round differently at another thread count, so the canary would
+    # otherwise depend on the CI machine's cores. 10240 steps: DAC reaches pointmass's expert
+    # by ~8k steps and stays there to ~12k (seeds 0 and 1: 0.98-1.03 at 8k-12k); past that its
+    # discriminator overtakes the matched policy and the score drifts down (0.78 and 0.85 at
+    # 16k), a slope on which a rounding change moves a seed far more than on the plateau.
+    Canary("dac", "pointmass", 10240, (("torch_threads", 1),)),
     Canary("bc", "inverted_pendulum", 1, (("updates", 300),)),
 )
 
