@@ -48,6 +48,15 @@ class Budget:
             raise BudgetError(f"budget env steps must be > 0, got {self.env_steps}")
         if self.evals < 1:
             raise BudgetError(f"budget evals must be >= 1, got {self.evals}")
+        # One cell, one run id: 600 and 600.0 seconds (or 1e5 and 100000 steps) are the same
+        # budget, and the run id hashes these values as JSON.
+        if self.seconds is not None:
+            object.__setattr__(self, "seconds", float(self.seconds))
+        if self.env_steps is not None:
+            if self.env_steps != int(self.env_steps):
+                raise BudgetError(f"budget env steps must be a whole number, got "
+                                  f"{self.env_steps}")
+            object.__setattr__(self, "env_steps", int(self.env_steps))
 
     def describe(self) -> str:
         parts = []

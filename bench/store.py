@@ -40,6 +40,11 @@ def write_json_atomic(path: str, obj) -> None:
     write_atomic(path, lambda f: json.dump(obj, f, indent=1, sort_keys=True, allow_nan=True))
 
 
+class CorruptRecord(ValueError):
+    """A record file that is not a JSON object (truncated by a full disk or a copy cut short,
+    or hand-edited); the message names the file and the fix."""
+
+
 class Store:
     def __init__(self, root: str = DEFAULT_ROOT):
         self.root = root
@@ -48,14 +53,35 @@ class Store:
         return os.path.join(self.root, f"{run_id}.json")
 
     def get(self, run_id: str) -> dict | None:
+        """The record of `run_id`, None if there is none; CorruptRecord if its file cannot
+        be read as a record."""
+        path = self.path(run_id)
         try:
-            with open(self.path(run_id)) as f:
-                return json.load(f)
+            with open(path) as f:
+                rec = json.load(f)
         except FileNotFoundError:
             return None
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise CorruptRecord(f"record {path} is not valid JSON ({e}): it was truncated or "
+                                "edited by hand; delete it (or run the sweep again, which "
+                                "sets it aside under corrupt/ and re-runs the cell)") from e
+        if not isinstance(rec, dict):
+            raise CorruptRecord(f"record {path} holds a {type(rec).__name__}, not a run "
+                                "record; delete it and re-run the cell")
+        return rec
 
     def finished(self, run_id: str) -> dict | None:
-        rec = self.get(run_id)
+        """The finished record of `run_id`, or None: the cell is to be run. A corrupt record
+        file is moved to <store>/corrupt/ (kept, not deleted) with a warning naming it, and
+        its cell then counts as not run."""
+        try:
+            rec = self.get(run_id)
+        except CorruptRecord as e:
+            aside = os.path.join(self.root, "corrupt")
+            os.makedirs(aside, exist_ok=True)
+            os.replace(self.path(run_id), os.path.join(aside, f"{run_id}.json"))
+            warnings.warn(f"{e}; moved to {aside}, and the cell re-runs")
+            return None
         return rec if rec is not None and rec.get("status") in FINISHED else None
 
     def write(self, record: dict) -> str:

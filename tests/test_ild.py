@@ -495,7 +495,7 @@ def test_updates_this_call_meets_the_budget_inside_a_chunk():
     assert n(done=8) == 2                    # 10 updates in all
     assert n(steps=3 * 4096) == 3            # env-step budget: exact
     assert n(steps=2 * 4096 + 1) == 3        # a partial update left still runs (as chunk 1)
-    assert n(s=10.0) == 4                    # no time per update measured yet (compiling)
+    assert n(s=10.0) == 1                    # no time per update measured yet: one update
     assert n(s=2.5, u=1.0) == 3              # 2.5 s left at 1 s per update: overrun < 1 update
     assert n(s=-1.0, u=1.0) == 1             # never 0: the caller checked should_stop first
 
@@ -506,18 +506,6 @@ def test_chunked_ild_stops_at_an_env_step_budget_inside_a_chunk(store):
     rec, _ = execute(prepare(_ild(0, bc_updates=0, chunk=4)), store, log=lambda s: None)
     assert rec["status"] == "ok" and rec["env_steps"] == 32 * 128 * 15
     assert rec["train_metrics"]["train/updates"] == 15
-
-
-def test_truncation_cuts_the_gradient_path():
-    """With truncation 1, the final state depends on earlier actions only through the
-    stop_gradient'ed state: changing the window changes the gradient."""
-    g = {}
-    for trunc in (1, 128):
-        loss, params, keys = _setup(_cfg(truncation=trunc, grad_normalization=False))
-        g[trunc] = jax.grad(lambda p: loss(p, jax.random.PRNGKey(2), keys)[0])(params)
-    a, b = (np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(g[t])])
-            for t in (1, 128))
-    assert not np.allclose(a, b)
 
 
 def _ild(seed, **over):

@@ -290,12 +290,14 @@ def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: flo
                       left_steps: int | None, update_s: float | None) -> int:
     """How many of a chunk's updates to run: what is left of `updates`, of an env-step
     budget (exact) and of a time budget (at the last call's seconds per update, rounded up:
-    a call overruns the time by at most one update, as one update per call does)."""
+    a call overruns the time by at most one update, as one update per call does). Under a
+    time budget, a call with no time per update measured yet (the first, which compiles, and
+    the one after it) runs one update."""
     n = min(config.chunk, config.updates - done)
     if left_steps is not None:
         n = min(n, -(-left_steps // per_update))
-    if left_s is not None and update_s:
-        n = min(n, int(np.ceil(max(left_s, 0.0) / update_s)))
+    if left_s is not None:
+        n = min(n, int(np.ceil(max(left_s, 0.0) / update_s))) if update_s else 1
     return max(n, 1)
 
 
