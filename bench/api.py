@@ -127,3 +127,7 @@ class MethodSpec:
     or a preset, the config's own check refuses the pair."""
     reference: bool = False
     """True for references that are not imitation methods (true reward / sim at test)."""
+    min_env_steps: int | None = None
+    """The env steps the method's own paper trains for, if it needs that many to be judged
+    (off-policy RL learners): a leaderboard cell whose median env steps fall below it is
+    marked as starved, with a footnote."""

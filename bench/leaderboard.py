@@ -7,6 +7,13 @@ equal (the 'variant' column, a short hash of them); the budget is shown so unequ
 are visible. A 'diverged' run counts with its last valid evaluation (or 0.0, random level, if
 it never had one); 'failed' runs are listed in the `failed` column and not averaged.
 Reference methods (which use the true reward or the simulator at test time) are marked.
+
+Every cell says what it did with its budget: the median env steps and learner updates of its
+runs. Each task carries its floors (bench/floors.py: all-zero actions, and the demo's
+actions replayed open loop) as rows of their own; a cell that does not beat `zero_action`
+is marked, as is a cell whose median env steps are below its method's `min_env_steps`
+(starved: its paper trains for far longer), and a task whose `zero_action` floor scores
+above 0.8 is named weakly discriminative under the table.
 """
 from __future__ import annotations
 
@@ -26,7 +33,10 @@ from bench.store import Store
 COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "normalized_mean", "normalized_std", "ci_lo", "ci_hi", "transfer_mean",
            "transfer_std", "auc_mean", "t50_mean", "t50_reached", "t90_mean", "t90_reached",
-           "return_mean", "paper_return", "paper_expert", "diverged", "failed"]
+           "return_mean", "paper_return", "paper_expert", "diverged", "failed",
+           "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
+           "below_zero_action"]
+STARVED, NOT_ABOVE_ZERO = "†", "‡"
 
 
 def _transfer(record: dict) -> float | None:
@@ -65,11 +75,40 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "budget": Budget(**r["budget"]).describe(), "train_s": r.get("train_s"),
                      "auc": curves.auc(curve, horizon) if horizon else None,
                      "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
-                     "curve": curve, "horizon": horizon, "started": r.get("started")})
+                     "curve": curve, "horizon": horizon, "started": r.get("started"),
+                     "env_steps": r.get("env_steps"),
+                     "updates": (r.get("train_metrics") or {}).get("train/updates")})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
-                                       "curve", "horizon", "started"])
+                                       "curve", "horizon", "started", "env_steps", "updates"])
+
+
+def _median(col: pd.Series) -> float:
+    v = col.dropna().astype(float)
+    return float(v.median()) if len(v) else float("nan")
+
+
+def _min_env_steps(method: str) -> int | None:
+    from bench.plugins import all_methods
+    spec = all_methods().get(method)
+    return None if spec is None else spec.min_env_steps
+
+
+def task_floors(tasks, compute: bool = True) -> dict[str, dict]:
+    """{task: floors entry} (bench/floors.py) for the tasks that have a demo."""
+    from bench.floors import floors
+    from tasks import make_task
+    from tasks.demo import load_demo
+    out = {}
+    for name in sorted(set(tasks)):
+        task = make_task(name)
+        if task.spec.demo_path is None or task.spec.success_score:
+            continue
+        entry = floors(task, load_demo(task.spec.demo_path, task), compute=compute)
+        if entry:
+            out[name] = entry
+    return out
 
 
 def _mean(col: pd.Series) -> float:
@@ -78,13 +117,16 @@ def _mean(col: pd.Series) -> float:
 
 
 def leaderboard(store: Store) -> pd.DataFrame:
-    return board(records_frame(store))
+    frame = records_frame(store)
+    return board(frame, task_floors(frame.task))
 
 
-def board(df: pd.DataFrame) -> pd.DataFrame:
-    """The leaderboard of a records_frame."""
+def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFrame:
+    """The leaderboard of a records_frame, with each task's floor rows (`floors`: task ->
+    bench.floors entry) and the marks that read them."""
     if df.empty:
         return pd.DataFrame(columns=COLUMNS)
+    floors = floors or {}
     out = []
     for (task, method, var, uses, budget), g in df.groupby(["task", "method", "variant", "uses",
                                                             "budget"]):
@@ -106,15 +148,42 @@ def board(df: pd.DataFrame) -> pd.DataFrame:
                     "transfer_std": scored.transfer.astype(float).std(ddof=1),
                     "return_mean": scored["return"].astype(float).mean(),
                     "diverged": int((g.status == "diverged").sum()),
-                    "failed": int((g.status == "failed").sum())})
+                    "failed": int((g.status == "failed").sum()),
+                    "env_steps_median": _median(scored.env_steps),
+                    "updates_median": _median(scored.updates),
+                    "min_env_steps": _min_env_steps(method), "floor": False})
+    for row in out:
+        need, steps = row["min_env_steps"], row["env_steps_median"]
+        row["starved"] = bool(need is not None and pd.notna(steps) and steps < need)
+        zero = floors.get(row["task"], {}).get("zero_action")
+        row["below_zero_action"] = bool(zero is not None and pd.notna(row["normalized_mean"])
+                                        and row["normalized_mean"] <= zero["normalized"])
+    for task, entry in floors.items():
+        if task not in set(df.task):
+            continue
+        for name, v in entry.items():
+            out.append({"task": task, "method": name, "variant": "-", "uses": "-",
+                        "reference": False, "budget": "-", "seeds": 0,
+                        "normalized_mean": v["normalized"], "return_mean": v["return"],
+                        "floor": True, "starved": False, "below_zero_action": False,
+                        "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
+                        "paper_return": float("nan"), "paper_expert": float("nan")})
     return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
                                                           ascending=[True, False])
+
+
+def _count(v) -> str:
+    if pd.isna(v):
+        return "-"
+    v = float(v)
+    return f"{v / 1e6:.2f}M" if v >= 1e6 else (f"{v / 1e3:.0f}k" if v >= 1e4 else f"{v:.0f}")
 
 
 def to_markdown(board: pd.DataFrame) -> str:
     if board.empty:
         return "_no finished runs in the store_\n"
     show = board.copy()
+    floor = show.floor.fillna(False).astype(bool)
     show["normalized"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else f"{m:.3f}"
                           for m, s in zip(show.normalized_mean, show.normalized_std)]
     show["transfer"] = [f"{m:.3f} ± {s:.3f}" if pd.notna(s) else
@@ -131,10 +200,50 @@ def to_markdown(board: pd.DataFrame) -> str:
         return "-" if n == 0 else f"{m:.0f}s ({n}/{seeds})"
     show["t50%"] = [_tt(m, n, k) for m, n, k in zip(show.t50_mean, show.t50_reached, show.seeds)]
     show["t90%"] = [_tt(m, n, k) for m, n, k in zip(show.t90_mean, show.t90_reached, show.seeds)]
-    show["method"] = [m + (" (ref)" if r else "") for m, r in zip(show.method, show.reference)]
+    show["method"] = [m + (" (ref)" if r else "") + (STARVED if st else "")
+                      + (NOT_ABOVE_ZERO if bz else "")
+                      for m, r, st, bz in zip(show.method, show.reference,
+                                              show.starved.fillna(False),
+                                              show.below_zero_action.fillna(False))]
+    show["env steps"] = show.env_steps_median.map(_count)
+    show["updates"] = show.updates_median.map(_count)
+    show.loc[floor, "method"] = [f"_{m} (floor)_" for m in show.method[floor]]
+    for col in ("95% CI", "transfer", "AUC", "t50%", "t90%", "paper", "env steps", "updates",
+                "diverged", "failed"):
+        show[col] = show[col].astype(object)
+        show.loc[floor, col] = "-"
+    show.loc[floor, "normalized"] = [f"{m:.3f}" for m in show.normalized_mean[floor]]
     cols = ["task", "method", "variant", "normalized", "95% CI", "transfer", "AUC", "t50%",
-            "t90%", "return", "paper", "seeds", "budget", "uses", "diverged", "failed"]
-    return show[cols].to_markdown(index=False) + "\n"
+            "t90%", "return", "env steps", "updates", "paper", "seeds", "budget", "uses",
+            "diverged", "failed"]
+    return show[cols].to_markdown(index=False) + "\n" + notes(board)
+
+
+def notes(board: pd.DataFrame) -> str:
+    """The table's footnotes: the marks, and the weakly discriminative tasks."""
+    from bench.floors import WEAK_ABOVE
+    lines = []
+    starved = board[board.starved.fillna(False).astype(bool)]
+    if len(starved):
+        need = sorted({f"{m} {_count(n)}" for m, n in zip(starved.method,
+                                                           starved.min_env_steps)})
+        lines.append(f"{STARVED} starved: the cell's median env steps are below what its "
+                     f"method's paper trains for ({', '.join(need)}); its score says how far "
+                     "the method gets on this budget, not how far it can get.")
+    if board.below_zero_action.fillna(False).astype(bool).any():
+        lines.append(f"{NOT_ABOVE_ZERO} not above the zero_action floor: all-zero actions "
+                     "score as high; the method learned nothing useful on that task.")
+    floors = board[board.floor.fillna(False).astype(bool)]
+    weak = sorted(floors[(floors.method == "zero_action")
+                         & (floors.normalized_mean > WEAK_ABOVE)].task)
+    if len(floors):
+        lines.append("Floors (bench/floors.py, the shared evaluator on the references' "
+                     "episodes): zero_action = all-zero actions; demo_replay = the demo's "
+                     "actions replayed open loop from each episode's own initial state.")
+    if weak:
+        lines.append(f"Weakly discriminative (zero_action above {WEAK_ABOVE} normalized): "
+                     f"{', '.join(weak)}.")
+    return "".join(f"\n{line}\n" for line in lines)
 
 
 def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:

@@ -51,6 +51,10 @@ def register(spec: MethodSpec, source: str = "in-repo") -> MethodSpec:
     if not (dataclasses.is_dataclass(spec.config_cls)
             and spec.config_cls.__dataclass_params__.frozen):
         raise TypeError(f"method {spec.name!r}: config_cls must be a frozen dataclass")
+    if spec.min_env_steps is not None and not (isinstance(spec.min_env_steps, int)
+                                               and spec.min_env_steps >= 1):
+        raise ValueError(f"method {spec.name!r}: min_env_steps must be a whole number >= 1 "
+                         f"or None, got {spec.min_env_steps!r}")
     # checked here, not where they apply: another platform's overrides never run on this one
     fields = [f.name for f in dataclasses.fields(spec.config_cls)]
     for platform, per_task in spec.platform_overrides.items():

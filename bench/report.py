@@ -178,7 +178,7 @@ def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
 def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
     """Every report file from one read of the store; leaderboard.md comes first."""
     frame = lb.records_frame(store)
-    paths = list(lb.write(lb.board(frame), out_dir))
+    paths = list(lb.write(lb.board(frame, lb.task_floors(frame.task)), out_dir))
     if not frame.empty:
         agg, imp, notes = aggregates(frame, reps=reps)
         p = os.path.join(out_dir, "aggregates.md")

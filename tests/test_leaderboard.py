@@ -19,7 +19,7 @@ def test_mean_std_and_seed_counts(store):
     _rec(store, "c", "m", 2, "diverged", None)   # never evaluated: counts as 0.0
     _rec(store, "d", "m", 3, "failed", None)     # not averaged, only counted
     board = lb.leaderboard(store)
-    row = board.iloc[0]
+    row = board[~board.floor].iloc[0]
     assert row.seeds == 3 and row.failed == 1 and row.diverged == 1
     assert row.normalized_mean == pytest.approx(0.4)
     assert row.normalized_std == pytest.approx(0.36055512754, rel=1e-9)  # std(0.5, 0.7, 0)
@@ -58,6 +58,7 @@ def test_different_configs_are_not_pooled(store):
                      "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
                                 "evals": 10}})
     board = lb.leaderboard(store)
+    board = board[~board.floor]
     assert sorted(board.seeds.tolist()) == [1, 2] and board.variant.nunique() == 2
 
 
@@ -160,3 +161,75 @@ def test_a_task_with_a_weak_reference_stays_in_the_table_but_not_the_aggregates(
     assert any(n.startswith("swimmer: left out of the aggregates") for n in notes)
     write_report(store, str(tmp_path / "out"), reps=200)
     assert "swimmer" in open(tmp_path / "out" / "leaderboard.md").read()
+
+
+def test_floors_on_pointmass_equal_their_hand_computed_returns(tmp_path):
+    """pointmass: x_{t+1} = x_t + dt v_t, v_{t+1} = v_t + dt f_t / m, f = 2 a, reward
+    -|x_{t+1}|. zero_action keeps v_0: x_t = x_0 + t dt v_0. demo_replay plays the demo's
+    a_t from each episode's own (x_0, v_0). Both over the references' 128 episodes from
+    seed 0, normalized by the demo's references."""
+    import jax
+    import numpy as np
+
+    from bench.evaluator import eval_key
+    from bench.floors import floors
+    from tasks import make_task
+    from tasks.demo import load_demo
+    task = make_task("pointmass")
+    demo = load_demo(task.spec.demo_path, task)
+    got = floors(task, demo, ref_dir=str(tmp_path))  # computed afresh, then stored
+    keys = jax.random.split(eval_key(0), 128)
+    x0v0 = np.stack([np.asarray(task.env.reset(jax.random.split(k)[0]).pipeline_state)
+                     for k in keys]).astype(np.float64)
+    env = task.env.unwrapped
+    dt, m, fs = env.dt, env.mass, env.force_scale
+
+    def episode_return(x, v, actions):
+        total = 0.0
+        for a in actions:
+            x, v = x + dt * v, v + dt * fs * np.clip(a, -1, 1) / m
+            total -= abs(x)
+        return total
+    T = demo.length
+    zero = np.mean([episode_return(x, v, np.zeros(T)) for x, v in x0v0])
+    replay = np.mean([episode_return(x, v, np.asarray(demo.actions[0, :, 0], np.float64))
+                      for x, v in x0v0])
+    assert got["zero_action"]["return"] == pytest.approx(zero, rel=1e-4)
+    assert got["demo_replay"]["return"] == pytest.approx(replay, rel=1e-4)
+    assert got["zero_action"]["normalized"] == pytest.approx(float(demo.normalize(zero)),
+                                                             rel=1e-4)
+    assert floors(task, demo, ref_dir=str(tmp_path), compute=False) == got  # read back
+
+
+def _steps_rec(store, rid, method, seed, norm, steps, updates):
+    store.write({"run_id": rid, "task": "pointmass", "method": method, "seed": seed,
+                 "status": "ok", "final_normalized": norm, "final_return": 1.0,
+                 "uses": {"demo_states": True}, "reference_method": False,
+                 "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                            "evals": 10}, "env_steps": steps,
+                 "train_metrics": {"train/updates": updates}})
+
+
+def test_cells_report_median_env_steps_and_updates_and_mark_starved_and_floor_cells(store):
+    """Median env steps and updates per cell; a DAC cell under its 1M-step paper budget is
+    starved; a cell not above the zero_action floor is marked; floors are rows."""
+    for seed, steps, updates in ((0, 30_000, 29_000), (1, 50_000, 49_000), (2, 40_000, 39_000)):
+        _steps_rec(store, f"d{seed}", "dac", seed, 0.9, steps, updates)
+    for seed in range(2):
+        _steps_rec(store, f"b{seed}", "bc", seed, 0.1, 0, 1000)
+    floors = {"pointmass": {"zero_action": {"return": -50.0, "normalized": 0.2},
+                            "demo_replay": {"return": -30.0, "normalized": 0.7}}}
+    board = lb.board(lb.records_frame(store), floors)
+    dac = board[board.method == "dac"].iloc[0]
+    bc = board[board.method == "bc"].iloc[0]
+    assert dac.env_steps_median == 40_000 and dac.updates_median == 39_000
+    assert dac.starved and dac.min_env_steps == 1_000_000 and not dac.below_zero_action
+    assert not bc.starved and bc.below_zero_action and bc.env_steps_median == 0
+    assert sorted(board[board.floor].method) == ["demo_replay", "zero_action"]
+    md = lb.to_markdown(board)
+    assert "dac†" in md and "bc‡" in md and "40k" in md and "_zero_action (floor)_" in md
+    assert "starved" in md and "dac 1.00M" in md and "not above the zero_action floor" in md
+    assert "Weakly discriminative" not in md
+    floors["pointmass"]["zero_action"]["normalized"] = 0.85
+    assert "Weakly discriminative (zero_action above 0.8 normalized): pointmass." in \
+        lb.to_markdown(lb.board(lb.records_frame(store), floors))

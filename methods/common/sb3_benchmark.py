@@ -12,7 +12,7 @@ env steps/s and learner updates/s over `steps` env steps after learning has star
 (warm-up excluded); runs alternate plain/method `repeats` times so machine drift hits both,
 and the medians are printed side by side with their ratio. Target: method / plain >= 0.75
 at the original's update-to-data ratio (1) on one core. `--utd 0.25` measures the speed
-knob `updates_per_step` (its score trade is in results/sb3_speed/). `dac_disc3` is DAC with
+knob `updates_per_step` (results/sb3_speed/README.md). `dac_disc3` is DAC with
 one discriminator update per 3 TD3 updates (`disc_every=3`, not the original schedule).
 """
 from __future__ import annotations

@@ -12,4 +12,5 @@ METHOD = MethodSpec(
                 "absorbing states",
     presets=PRESETS,
     version="2",
+    min_env_steps=1_000_000,  # the original trained for 1M env steps
 )

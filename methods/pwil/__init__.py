@@ -11,5 +11,6 @@ METHOD = MethodSpec(
     description="TD3 on a greedy Wasserstein-coupling reward to the demo's (s, a) atoms",
     presets=PRESETS,
     version="2",
+    min_env_steps=1_000_000,  # the original trained for 1M env steps
     task_overrides=TASK_OVERRIDES,
 )

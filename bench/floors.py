@@ -1,0 +1,97 @@
+"""Floors: what a policy that learned nothing scores on each task, by the shared evaluator.
+
+    zero_action   all-zero actions every step
+    demo_replay   the demo's actions replayed open loop, step t playing a_t, from each
+                  evaluation episode's own initial state
+
+Both are scored exactly as the expert and random references are (the shared evaluator,
+`tasks.expert.REFERENCE_EPISODES` deterministic episodes from `REFERENCE_SEED`) and stored
+beside the transfer references (`<references>/<task>.floors.json`, keyed by the demo's
+sha256, so a new demo gets new floors). A method that does not beat `zero_action` on a task
+has learned nothing there; a task whose `zero_action` scores above `WEAK_ABOVE` normalized
+is weakly discriminative (reacher: its random reference is mostly control cost).
+"""
+from __future__ import annotations
+
+import functools
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+from bench.api import Policy
+from bench.evaluator import EvalConfig, Evaluator
+from bench.store import write_json_atomic
+from tasks.core import Task
+from tasks.demo import Demo
+
+FLOORS = ("zero_action", "demo_replay")
+WEAK_ABOVE = 0.8
+"""A task whose zero_action floor scores above this (normalized) is weakly discriminative."""
+
+
+def zero_action_policy(action_size: int) -> Policy:
+    return Policy(act=_zero_act(action_size), params=())
+
+
+@functools.lru_cache(maxsize=None)
+def _zero_act(action_size: int):
+    def act(params, obs, key, deterministic):
+        return jnp.zeros((action_size,))
+    return act
+
+
+def _replay_act(params, obs, key, deterministic, t):
+    """The demo's action a_t (the last one held past the demo's end); memory = t."""
+    return params[jnp.minimum(t, params.shape[0] - 1)], t + 1
+
+
+def _replay_start(params, key):
+    return jnp.int32(0)
+
+
+def demo_replay_policy(actions: np.ndarray) -> Policy:
+    """Open-loop replay of one trajectory's actions (T, A)."""
+    return Policy(act=_replay_act, params=jnp.asarray(actions, jnp.float32),
+                  init_memory=_replay_start)
+
+
+def _path(task: Task, ref_dir: str) -> str:
+    return os.path.join(ref_dir, f"{task.name}.floors.json")
+
+
+def _load(path: str) -> dict:
+    import json
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        return {}
+
+
+def floors(task: Task, demo: Demo, ref_dir: str | None = None,
+           compute: bool = True) -> dict[str, dict] | None:
+    """{floor: {'return', 'normalized'}} for `task` with `demo`'s references: read from the
+    references folder, or computed by the shared evaluator and stored there (`compute`);
+    None where they are not stored and `compute` is False."""
+    from bench.transfer import REF_DIR
+    from tasks.expert import REFERENCE_EPISODES, REFERENCE_SEED
+    path = _path(task, ref_dir or REF_DIR)
+    entry = _load(path).get(demo.sha256)
+    if entry is not None or not compute:
+        return entry
+    ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True),
+                   demo.expert_return, demo.random_return)
+    entry = {}
+    for name, policy in (("zero_action", zero_action_policy(task.action_size)),
+                         ("demo_replay", demo_replay_policy(np.asarray(demo.actions[0])))):
+        r = ev.evaluate(policy, REFERENCE_SEED)
+        entry[name] = {"return": r.mean_return, "normalized": r.mean_normalized}
+    cache = _load(path)  # re-read: another process may have added entries meanwhile
+    cache[demo.sha256] = entry
+    write_json_atomic(path, cache)
+    return entry
+
+
+def weakly_discriminative(entry: dict | None) -> bool:
+    return bool(entry) and entry["zero_action"]["normalized"] > WEAK_ABOVE
