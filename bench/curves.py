@@ -1,4 +1,5 @@
-"""Anytime metrics from a run's evaluation curve (normalized score vs training seconds).
+"""Anytime metrics from a run's evaluation curve (normalized score vs training seconds, or
+vs env steps with x="env_steps").
 
 A run's score at training time t is its latest evaluation at or before t (the policy a user
 would hold if training stopped at t), and 0.0 (random level) before its first evaluation.
@@ -13,8 +14,10 @@ from __future__ import annotations
 import numpy as np
 
 
-def _points(curve) -> tuple[np.ndarray, np.ndarray]:
-    pts = [(float(p["train_s"]), float(p["normalized"])) for p in curve or []
+def _points(curve, x: str = "train_s") -> tuple[np.ndarray, np.ndarray]:
+    if x not in ("train_s", "env_steps"):
+        raise ValueError(f"a curve's x is 'train_s' or 'env_steps', got {x!r}")
+    pts = [(float(p[x]), float(p["normalized"])) for p in curve or []
            if p.get("normalized") is not None and np.isfinite(p["normalized"])]
     pts.sort()
     if not pts:
@@ -23,9 +26,9 @@ def _points(curve) -> tuple[np.ndarray, np.ndarray]:
     return t, s
 
 
-def value_at(curve, times) -> np.ndarray:
-    """The step function at each time in `times`."""
-    t, s = _points(curve)
+def value_at(curve, times, x: str = "train_s") -> np.ndarray:
+    """The step function at each time (or env step count, x="env_steps") in `times`."""
+    t, s = _points(curve, x)
     times = np.asarray(times, float)
     if t.size == 0:
         return np.zeros_like(times)

@@ -128,8 +128,9 @@ def aggregates_markdown(agg: pd.DataFrame, imp: pd.DataFrame, notes: list[str]) 
     return "\n".join(out) + "\n"
 
 
-def _curve_band(runs: list[list[dict]], grid: np.ndarray) -> tuple[np.ndarray, ...]:
-    vals = np.stack([curves.value_at(c, grid) for c in runs])  # (runs, grid)
+def _curve_band(runs: list[list[dict]], grid: np.ndarray, x: str = "train_s"
+                ) -> tuple[np.ndarray, ...]:
+    vals = np.stack([curves.value_at(c, grid, x) for c in runs])  # (runs, grid)
     mean = vals.mean(0)
     if len(runs) == 1:
         return mean, mean, mean
@@ -156,12 +157,9 @@ def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
             ax.fill_between(grid, lo, hi, alpha=0.2)
             if not ref and not _weak_reference(task):
                 agg.setdefault(method, []).append(mean)
-        ax.axhline(1.0, color="grey", lw=0.5, ls=":")
-        ax.set_xlabel("training wall-clock (s)")
-        ax.set_ylabel("normalized score")
-        ax.set_title(f"{task}: anytime score (1 = expert, 0 = random)")
-        ax.legend(fontsize=7)
-        paths.append(save_figure(fig, out_dir, f"curves_{task}.png"))
+        paths.append(_finish(fig, ax, "training wall-clock (s)",
+                             f"{task}: anytime score (1 = expert, 0 = random)", out_dir,
+                             f"curves_{task}.png"))
     if agg:
         fig, ax = plt.subplots(figsize=(5, 3.4))
         for method, per_task in sorted(agg.items()):
@@ -172,7 +170,50 @@ def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
         ax.set_title("aggregate anytime score (imitation methods)")
         ax.legend(fontsize=7)
         paths.append(save_figure(fig, out_dir, "curves_aggregate.png"))
+    return paths + step_curve_plots(frame, out_dir)
+
+
+def _max_steps(curve) -> float:
+    return max((float(p.get("env_steps") or 0) for p in curve or []), default=0.0)
+
+
+def step_curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
+    """Anytime curves against env steps (log axis) of the main variant per (task, method),
+    for methods that step the env (BC, which never does, is left out)."""
+    chosen = main_variants(frame)
+    paths = []
+    for task, per_task in chosen.groupby("task"):
+        fig, ax = plt.subplots(figsize=(5, 3.4))
+        drawn = 0
+        for method, g in per_task.groupby("method"):
+            top = max(_max_steps(c) for c in g.curve)
+            if top <= 0:
+                continue
+            grid = np.geomspace(min(1e3, top), top, GRID_POINTS)
+            mean, lo, hi = _curve_band(list(g.curve), grid, "env_steps")
+            ref = " (ref)" if g.reference.any() else ""
+            ax.plot(grid, mean, label=f"{method}{ref} (n={len(g)})", ls="--" if ref else "-")
+            ax.fill_between(grid, lo, hi, alpha=0.2)
+            drawn += 1
+        if not drawn:
+            plt.close(fig)
+            continue
+        ax.set_xscale("log")
+        ax.axhline(0.0, color="grey", lw=0.5, ls=":")
+        paths.append(_finish(fig, ax, "env steps",
+                             f"{task}: score vs env steps",
+                             out_dir, f"steps_{task}.png"))
     return paths
+
+
+def _finish(fig, ax, xlabel: str, title: str, out_dir: str, name: str) -> str:
+    """A per-task curve figure's expert line, labels and legend; saved as `name`."""
+    ax.axhline(1.0, color="grey", lw=0.5, ls=":")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("normalized score")
+    ax.set_title(title)
+    ax.legend(fontsize=7)
+    return save_figure(fig, out_dir, name)
 
 
 def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:

@@ -233,3 +233,27 @@ def test_cells_report_median_env_steps_and_updates_and_mark_starved_and_floor_ce
     floors["pointmass"]["zero_action"]["normalized"] = 0.85
     assert "Weakly discriminative (zero_action above 0.8 normalized): pointmass." in \
         lb.to_markdown(lb.board(lb.records_frame(store), floors))
+
+
+def test_curves_read_against_env_steps_and_plot_on_a_step_axis(store, tmp_path):
+    """A run's score at n env steps is its latest evaluation at or before n (0 before the
+    first): the sample-matched reading of an anytime curve."""
+    from bench import curves
+    from bench.report import step_curve_plots
+    curve = [{"train_s": 5.0, "env_steps": 10_000, "normalized": 0.3},
+             {"train_s": 9.0, "env_steps": 50_000, "normalized": 0.8},
+             {"train_s": 20.0, "env_steps": 200_000, "normalized": 0.9}]
+    got = curves.value_at(curve, [5_000, 10_000, 49_999, 50_000, 10 ** 6], x="env_steps")
+    assert got.tolist() == [0.0, 0.3, 0.3, 0.8, 0.9]
+    assert curves.value_at(curve, [10.0], x="train_s").tolist() == [0.8]
+    with pytest.raises(ValueError, match="'train_s' or 'env_steps'"):
+        curves.value_at(curve, [1], x="updates")
+    for seed in range(2):
+        store.write({"run_id": f"s{seed}", "task": "pointmass", "method": "dac", "seed": seed,
+                     "status": "ok", "final_normalized": 0.9, "final_return": 1.0,
+                     "curve": curve, "uses": {}, "reference_method": False,
+                     "budget": {"seconds": None, "env_steps": 200_000,
+                                "charge_compile": True, "evals": 3}, "env_steps": 200_000})
+    paths = step_curve_plots(lb.records_frame(store), str(tmp_path))
+    assert [p.split("/")[-1] for p in paths] == ["steps_pointmass.png"]
+    assert (tmp_path / "steps_pointmass.png").stat().st_size > 1000
