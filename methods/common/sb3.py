@@ -205,6 +205,16 @@ class ObsNormalizer:
         return normalize_features(x, self.mean, self.inv_std, self.clip)
 
 
+def obs_normalizer(config, demo_obs: np.ndarray) -> ObsNormalizer | None:
+    """The learner's observation normalizer on its config's device, started from the demo's
+    observations (rows of features); None where the config's `normalize_obs` is off."""
+    if not config.normalize_obs:
+        return None
+    demo_obs = np.asarray(demo_obs, np.float32)
+    return ObsNormalizer(demo_obs.shape[-1], init=demo_obs.reshape(-1, demo_obs.shape[-1]),
+                         device=torch_device(config.device))
+
+
 def normalize_features(x: torch.Tensor, mean: torch.Tensor, inv_std: torch.Tensor,
                        clip: float) -> torch.Tensor:
     d = mean.shape[-1]

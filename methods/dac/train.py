@@ -22,8 +22,8 @@ from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
 from methods.common.sb3 import (BraxVecEnv, ObsNormalizer, learn_within_budget,
-                                seed_everything, set_torch_threads, td3_kwargs, torch_device,
-                                torch_policy)
+                                obs_normalizer, seed_everything, set_torch_threads, td3_kwargs,
+                                torch_device, torch_policy)
 from methods.dac.config import DACConfig
 
 import gymnasium as gym
@@ -334,11 +334,7 @@ def build_model(env, config: DACConfig, expert_obs, expert_actions, seed: int,
 def make_learner(env, episode_length: int, demo, config: DACConfig, seed: int) -> DACTD3:
     """DAC on `num_envs` copies of the (gated) brax env, with the demo's subsampled expert
     transitions."""
-    normalizer = None
-    if config.normalize_obs:
-        demo_obs = np.asarray(demo.obs, np.float32)[:, :-1]
-        normalizer = ObsNormalizer(demo_obs.shape[-1], init=demo_obs.reshape(-1, demo_obs.shape[-1]),
-                                   device=torch_device(config.device))
+    normalizer = obs_normalizer(config, np.asarray(demo.obs)[:, :-1])
     venv = AbsorbingWrapper(BraxVecEnv(env, config.num_envs, episode_length, seed), normalizer)
     expert_obs, expert_act = expert_transitions(demo, config, np.random.default_rng(seed))
     return build_model(venv, config, expert_obs, expert_act, seed, normalizer)

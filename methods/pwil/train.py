@@ -19,7 +19,8 @@ from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from bench.api import TrainResult
 from methods.common.sb3 import (BraxVecEnv, ObsNormalizer, learn_within_budget,
-                                seed_everything, set_torch_threads, td3_kwargs, torch_policy)
+                                obs_normalizer, seed_everything, set_torch_threads, td3_kwargs,
+                                torch_policy)
 from methods.pwil.config import PWILConfig
 from methods.pwil.rewarder import PWILRewarder
 
@@ -147,11 +148,7 @@ def make_learner(env, episode_length: int, demo, config: PWILConfig, seed: int,
     atoms, demo_obs, demo_act = expert_atoms(demo, config)
     rewarder = PWILRewarder(atoms, config.num_envs, config.horizon, config.alpha, config.beta,
                             scale_floor=config.scale_floor)
-    normalizer = None
-    if config.normalize_obs:
-        from methods.common.sb3 import torch_device
-        normalizer = ObsNormalizer(demo_obs.shape[-1], init=demo_obs[:-1],
-                                   device=torch_device(config.device))
+    normalizer = obs_normalizer(config, demo_obs[:-1])
     venv = PWILReward(BraxVecEnv(env, config.num_envs, episode_length, seed), rewarder,
                       config.use_actions, normalizer)
     model = build_model(venv, config, seed, normalizer)
