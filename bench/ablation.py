@@ -83,7 +83,7 @@ def ild_runs(store: Store, task: str, version: str | None = None):
 def latest_per(records, key) -> dict:
     """{key(r): r}, each key's record the one finished last ('finished', else 'started'; ties
     to the later in `records`). A cell re-run after a speed default changed its config, and
-    so its run id (e.g. session 41's lean substeps), leaves two finished records of the same
+    so its run id (e.g. a physics rewrite turned on by a task override), leaves two finished records of the same
     cell and seed in a store; the newer stands for it."""
     latest = {}
     for r in sorted(records, key=lambda r: str(r.get("finished") or r.get("started") or "")):
@@ -95,7 +95,7 @@ def table(store: Store, task: str, seconds: float | None = None,
           version: str | None = None) -> pd.DataFrame:
     """Runs of ILD's `version` only (default: the registered one): `ild_runs`. A setting's
     seed counts once: where the store holds it twice (the cell re-run after a speed default
-    changed its config and so its run id, e.g. session 41's lean substeps), the latest
+    changed its config and so its run id), the latest
     finished record stands for it."""
     version = ild_version(version)
     runs = (r for r in ild_runs(store, task, version)

@@ -2,7 +2,7 @@
 
 `ildbench expert calibrate --task T` measures the deterministic expert and the uniform random
 policy (the shared evaluator, REFERENCE_EPISODES fixed episodes: the same numbers the
-transfer normalization uses, cached in results/references) under each generic family on a
+transfer normalization uses, stored in tasks/data/references) under each generic family on a
 magnitude ladder that ends at the family's generic default (bench/perturb.DEFAULTS), from
 the smallest magnitude up, and stops at the first magnitude that fails
 
@@ -107,7 +107,7 @@ def dynamics_effect(task, p: Perturbation, episodes: int = 4, seed: int = 0) -> 
 
 
 def calibrate(task_name: str, log=print) -> dict:
-    """Measure the ladder (references cached in results/references), choose, write files."""
+    """Measure the ladder (references stored in tasks/data/references), choose, write files."""
     from bench.transfer import references
     from tasks.core import make_task
     from tasks.demo import load_demo
@@ -115,7 +115,8 @@ def calibrate(task_name: str, log=print) -> dict:
     task = make_task(task_name)
     if task.spec.demo_path is None or task.spec.success_score:
         raise ValueError(f"task {task_name!r} cannot be calibrated: "
-                         + ("it has no demo (no expert references) yet; see issue 3"
+                         + ("it has no demo (no expert references) yet; make one with "
+                            "`ildbench expert demo`"
                             if task.spec.demo_path is None else
                             "its score is a success rate with fixed references; its test "
                             "dynamics are declared in TaskSpec.transfer"))

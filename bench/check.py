@@ -3,7 +3,7 @@
 The canary cells use env-step budgets (not wall-clock), fixed seeds and fixed evaluation
 episodes, so on a CPU they are deterministic up to floating-point differences between
 machines. `ildbench check` runs them into a fresh store, averages each (method, task) over
-its seeds and compares with results/canary/reference.json:
+its seeds and compares with bench/data/canary_reference.json (package data):
 
     fail if  mean_now < mean_ref - tol,   tol = max(abs_tol, z * std_ref / sqrt(n))
 
@@ -28,8 +28,8 @@ from bench.evaluator import EvalConfig
 from bench.runner import RunRequest, prepare
 from bench.store import Store, write_json_atomic
 
-_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-REFERENCE = os.path.join(_REPO, "results", "canary", "reference.json")
+REFERENCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data",
+                         "canary_reference.json")
 ABS_TOL = 0.05
 Z = 3.0
 SEEDS = (0, 1)

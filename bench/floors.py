@@ -5,7 +5,7 @@
                   evaluation episode's own initial state
 
 Both are scored exactly as the expert and random references are (the shared evaluator,
-`tasks.expert.REFERENCE_EPISODES` deterministic episodes from `REFERENCE_SEED`) and stored
+`bench.expert.REFERENCE_EPISODES` deterministic episodes from `REFERENCE_SEED`) and stored
 beside the transfer references (`<references>/<task>.floors.json`, keyed by the demo's
 sha256, so a new demo gets new floors). A method that does not beat `zero_action` on a task
 has learned nothing there; a task whose `zero_action` scores above `WEAK_ABOVE` normalized
@@ -14,14 +14,12 @@ is weakly discriminative (reacher: its random reference is mostly control cost).
 from __future__ import annotations
 
 import functools
-import os
 
 import jax.numpy as jnp
 import numpy as np
 
 from bench.api import Policy
 from bench.evaluator import EvalConfig, Evaluator
-from bench.store import write_json_atomic
 from tasks.core import Task
 from tasks.demo import Demo
 
@@ -56,28 +54,15 @@ def demo_replay_policy(actions: np.ndarray) -> Policy:
                   init_memory=_replay_start)
 
 
-def _path(task: Task, ref_dir: str) -> str:
-    return os.path.join(ref_dir, f"{task.name}.floors.json")
-
-
-def _load(path: str) -> dict:
-    import json
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        return {}
-
-
 def floors(task: Task, demo: Demo, ref_dir: str | None = None,
            compute: bool = True) -> dict[str, dict] | None:
     """{floor: {'return', 'normalized'}} for `task` with `demo`'s references: read from the
     references folder, or computed by the shared evaluator and stored there (`compute`);
     None where they are not stored and `compute` is False."""
-    from bench.transfer import REF_DIR
-    from tasks.expert import REFERENCE_EPISODES, REFERENCE_SEED
-    path = _path(task, ref_dir or REF_DIR)
-    entry = _load(path).get(demo.sha256)
+    from bench.expert import REFERENCE_EPISODES, REFERENCE_SEED
+    from bench.transfer import load_references, store_reference
+    file = f"{task.name}.floors.json"
+    entry = load_references(file, ref_dir).get(demo.sha256)
     if entry is not None or not compute:
         return entry
     ev = Evaluator(task, EvalConfig(num_episodes=REFERENCE_EPISODES, deterministic=True),
@@ -87,9 +72,7 @@ def floors(task: Task, demo: Demo, ref_dir: str | None = None,
                          ("demo_replay", demo_replay_policy(np.asarray(demo.actions[0])))):
         r = ev.evaluate(policy, REFERENCE_SEED)
         entry[name] = {"return": r.mean_return, "normalized": r.mean_normalized}
-    cache = _load(path)  # re-read: another process may have added entries meanwhile
-    cache[demo.sha256] = entry
-    write_json_atomic(path, cache)
+    store_reference(file, demo.sha256, entry, ref_dir=ref_dir)
     return entry
 
 

@@ -4,7 +4,7 @@ XLA's CPU runtime mallocs each call's working memory (for an ILD update, the res
 backward pass reads: 191 MiB on hopper at B = 32) and frees it when the call ends. glibc
 serves an allocation that large with a fresh anonymous mapping and unmaps it on free, so
 every call pays one page fault per 4 KiB page it touches (49k faults, ~0.1 s of kernel time
-in a ~0.45 s hopper update; results/JOURNAL.md, sessions 25 and 32). With the tunable
+in a ~0.45 s hopper update; ). With the tunable
 `glibc.malloc.hugetlb=1` (glibc >= 2.35) malloc advises the kernel to back its mappings with
 2 MiB transparent huge pages, which cuts the faults 30-100-fold (pointmass, hopper) where
 the kernel's transparent huge pages are `madvise` or `always`. It changes where
@@ -74,7 +74,7 @@ def env_with_hugepages(env: Mapping[str, str]) -> dict | None:
 
 def reexec_with_hugepages(module: str | None = None) -> None:
     """Re-execute this process as `python -m <module> <the same arguments>` (without a
-    module, as `python <the same script and arguments>`: a script under results/) with the
+    module, as `python <the same script and arguments>`: a script run by path) with the
     tunable (`env_with_hugepages`); returns where there is nothing to add. For command-line
     entry points only: it replaces the running process."""
     env = env_with_hugepages(os.environ)

@@ -13,8 +13,6 @@ import datetime
 import hashlib
 import json
 import os
-import platform
-import subprocess
 import time
 import traceback
 from typing import Any, Callable, Mapping
@@ -27,6 +25,7 @@ from bench.access import DemoView, TaskView
 from bench.api import Diverged, MethodSpec, Policy, TrainResult
 from bench.budget import Budget, Clock
 from bench.evaluator import EvalConfig, Evaluator
+from bench.machine import cpu_model, git_revision, machine, resources, speed_settings  # noqa: F401
 from bench.plugins import build_config, get_method
 from bench.store import Store
 from bench.transfer import default_summary
@@ -47,71 +46,6 @@ def enable_compilation_cache(path: str | None = None, min_compile_s: float = 0.5
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
-
-
-def git_revision() -> str | None:
-    try:
-        out = subprocess.run(["git", "-C", _REPO, "rev-parse", "HEAD"], capture_output=True,
-                             text=True, timeout=5)
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def cpu_model(cpuinfo: str | None = None) -> str | None:
-    """The CPU's model as Linux names it, "<model name> (family F, model M)", from
-    /proc/cpuinfo (`cpuinfo`: its text, for tests); None where there is none to read
-    (`platform.processor()` is empty on Linux). Speed ratios move with it: update / forward
-    read 2.91-2.95x on one model and 3.15-3.21x on another for the same code (session 61)."""
-    if cpuinfo is None:
-        try:
-            with open("/proc/cpuinfo") as f:
-                cpuinfo = f.read()
-        except OSError:
-            cpuinfo = ""
-    first = cpuinfo.split("\n\n", 1)[0]  # the first processor's block
-    fields = {key.strip(): value.strip() for key, sep, value in
-              (line.partition(":") for line in first.splitlines()) if sep}
-    name = fields.get("model name")
-    if not name:
-        return platform.processor() or None
-    if "cpu family" in fields and "model" in fields:
-        return f"{name} (family {fields['cpu family']}, model {fields['model']})"
-    return name
-
-
-def speed_settings() -> dict:
-    """What changes speed but no number, as records and the speed CSVs name it: `xla_flags`,
-    the environment's XLA_FLAGS (None unset; XLA's code generator, results/JOURNAL.md,
-    session 28), `malloc_hugetlb`, glibc's huge-page tunable (bench.malloc; None unset:
-    `ildbench` sets it to "1" where it can act, session 32), and `cpu_model` (`cpu_model()`;
-    since session 63)."""
-    from bench.malloc import hugetlb
-    return {"xla_flags": os.environ.get("XLA_FLAGS") or None,
-            "malloc_hugetlb": hugetlb(os.environ), "cpu_model": cpu_model()}
-
-
-def machine() -> dict:
-    """The machine a record was made on, with its `speed_settings`: a run's updates per
-    budget depend on them."""
-    return {"platform": platform.platform(), "processor": platform.processor(),
-            "cpus": os.cpu_count(), "python": platform.python_version(),
-            "jax_devices": [str(d) for d in jax.devices()], **speed_settings()}
-
-
-def resources() -> dict:
-    """What this run may use: CPUs in its affinity set (taskset / cgroup pinning; under Ray,
-    the CPUs the cell reserved) and accelerators JAX sees. Recorded in every record: runs
-    compare only at equal resources."""
-    if os.environ.get("ILDBENCH_CPUS_PER_RUN"):  # set by an executor that reserves CPUs (Ray)
-        cpus = int(float(os.environ["ILDBENCH_CPUS_PER_RUN"]))
-    else:
-        try:
-            cpus = len(os.sched_getaffinity(0))
-        except AttributeError:  # not on Linux
-            cpus = os.cpu_count() or 1
-    gpus = sum(d.platform != "cpu" for d in jax.devices())
-    return {"cpus": cpus, "gpus": gpus}
 
 
 def _canonical(obj: Any) -> str:
@@ -220,6 +154,11 @@ def _move_aside(store: Store, run_id: str) -> None:
             os.replace(path, os.path.join(dest, os.path.basename(path)))
 
 
+def _fmt(x, digits: int) -> str:
+    """A score or return for a log line: `digits` decimals, or as it is (None, NaN)."""
+    return f"{x:.{digits}f}" if isinstance(x, (int, float)) and x == x else str(x)
+
+
 def _finite_tree(tree) -> bool:
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
     return all(np.isfinite(x).all() for x in leaves if np.issubdtype(x.dtype, np.inexact))
@@ -320,8 +259,8 @@ class RunContext:
                  # the method's last reported training metrics: loss beside score over time
                  "train": dict(self.last_metrics)}
         self.curve.append(point)
-        self.log(f"  eval @ {point['train_s']:.1f}s, {env_steps} steps: return "
-                 f"{point['return']:.2f}, normalized {point['normalized']}")
+        self.log(f"  eval @ {point['train_s']:.1f}s, {env_steps} env steps: return "
+                 f"{_fmt(point['return'], 2)}, normalized {_fmt(point['normalized'], 3)}")
         return point
 
 
@@ -444,6 +383,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         store.write_trajectory(p.run_id, ctx.last_trajectory)
         record["trajectory"] = os.path.basename(store.trajectory_path(p.run_id))
     store.write(record)
-    log(f"run {p.run_id}: {status}, final return {record['final_return']}, normalized "
-        f"{record['final_normalized']}" + (f"\n{message}" if status == "failed" else ""))
+    log(f"run {p.run_id}: {status}, final return {_fmt(record['final_return'], 2)}, "
+        f"normalized {_fmt(record['final_normalized'], 3)}, {record.get('env_steps')} env "
+        "steps" + (f"\n{message}" if status == "failed" else ""))
     return record, False

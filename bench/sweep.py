@@ -16,7 +16,7 @@ a file, and a reader never sees half a record.
 
 Compile warm-up: under a wall-clock budget that charges JIT compile time (the default), a
 cell's score depended on the state of the persistent compilation cache: the first seed of a
-configuration compiled from scratch (session 8's grid: ILD on inverted_pendulum spent 179 of
+configuration compiled from scratch (in a 3-minute grid, ILD on inverted_pendulum spent 179 of
 its 180 s compiling and made 1 update; SHAC's 194 s left it none), later seeds loaded the
 cache (~20 s). So before the first cell of each group of cells that share compiled training
 graphs (same method, version, task, config and demo count) the sweep runs that cell once
@@ -24,12 +24,17 @@ more in a spawned process with a one-env-step budget, one evaluation and no tran
 throwaway store: it fills the persistent cache, and every timed cell then pays the same
 cache-load cost. This holds only if a method's training graph compiles once: SHAC's first
 state carried weak types, its second epoch compiled again, uncached, and its first seed on
-humanoid and walker2d spent 206 and 181 s of a 180-s budget compiling (fixed in session 13,
+humanoid and walker2d spent 206 and 181 s of a 180-s budget compiling (fixed since,
 per-epoch numbers unchanged; tests/test_shac.py checks that it compiles once). Skipped where
 it cannot matter (env-step budgets, compile not charged) and with `warm=False` (`--no-warm`).
 
-Progress (rich): cells done / skipped / left, the last cell's score, and an ETA from the mean
-wall time of the cells run in this sitting.
+Parallel cells on one machine (`workers` > 1, `--workers N`): that many cells at a time, each
+in its own spawned process pinned to one CPU of the sweep's affinity set, so every cell
+gets the same single core (records say so in `resources`); the compile warm-ups run the same
+way first. The store is safe for that: records are written atomically, one file per run id.
+
+Progress (rich): cells done / skipped / left, each cell's score and env steps, and an ETA from
+the sweep's own pace (elapsed time per cell run so far, warm-ups and parallel cells included).
 """
 from __future__ import annotations
 
@@ -56,16 +61,24 @@ class Outcome:
     normalized: float | None
     skipped: bool
     wall_s: float
+    env_steps: int | None = None
 
 
 class Progress:
-    """Counts, last score and ETA; a rich live bar on a terminal, plain lines otherwise."""
+    """Counts, each cell's score and env steps, and an ETA; a rich live bar on a terminal,
+    plain lines otherwise. The ETA: the cells left times the mean wall time of the cells
+    run so far (their compile warm-ups included), over the `workers` that run them at once;
+    `workers=None` (an executor whose parallelism is not known here, Ray) uses the sweep's
+    own pace instead, the time since it started over the cells run so far. Skipped cells
+    (finished before) cost nothing."""
 
-    def __init__(self, total: int, to_run: int, log: Callable[[str], None] = print):
+    def __init__(self, total: int, to_run: int, log: Callable[[str], None] = print,
+                 workers: int | None = 1, clock: Callable[[], float] = time.perf_counter):
         self.total, self.to_run, self.log = total, to_run, log
+        self.workers, self.clock = workers, clock
         self.done = self.skipped = 0
         self.walls: list[float] = []
-        self.t0 = time.perf_counter()
+        self.t0 = clock()
         self._bar = None
         if sys.stdout.isatty():
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RP,
@@ -75,11 +88,17 @@ class Progress:
             self._bar.start()
             self._task = self._bar.add_task("sweep", total=total, eta="?")
 
+    @property
+    def ran(self) -> int:
+        return len(self.walls)
+
     def eta_s(self) -> float | None:
-        left = self.to_run - len(self.walls)
         if not self.walls:
             return None
-        return left * sum(self.walls) / len(self.walls)
+        left = self.to_run - self.ran
+        if self.workers is None:
+            return left * (self.clock() - self.t0) / self.ran
+        return left * (sum(self.walls) / self.ran) / self.workers
 
     def update(self, o: Outcome) -> str:
         self.done += 1
@@ -90,9 +109,10 @@ class Progress:
         eta = self.eta_s()
         eta_txt = "?" if eta is None else time.strftime("%H:%M:%S", time.gmtime(eta))
         score = "-" if o.normalized is None else f"{o.normalized:.3f}"
+        steps = "" if o.env_steps is None else f", {format_steps(o.env_steps)} env steps"
         line = (f"[{self.done}/{self.total}] {o.method} on {o.task} seed {o.seed}: "
                 f"{'skipped (finished before), ' if o.skipped else ''}{o.status}, normalized "
-                f"{score} | run {len(self.walls)}, skipped {self.skipped}, left "
+                f"{score}{steps} | run {self.ran}, skipped {self.skipped}, left "
                 f"{self.total - self.done}, ETA {eta_txt}")
         if self._bar is not None:
             self._bar.update(self._task, advance=1, eta=eta_txt,
@@ -107,10 +127,19 @@ class Progress:
             self._bar.stop()
 
 
+def format_steps(n: int) -> str:
+    """Env steps as the tables print them: 950, 51k, 20.48M."""
+    if n >= 1_000_000:
+        return f"{n / 1e6:.2f}M"
+    if n >= 10_000:
+        return f"{n / 1e3:.0f}k"
+    return str(n)
+
+
 def _outcome(p: Prepared, rec: dict, skipped: bool, wall: float) -> Outcome:
     r = p.request
     return Outcome(p.run_id, r.method, r.task, r.seed, rec["status"],
-                   rec.get("final_normalized"), skipped, wall)
+                   rec.get("final_normalized"), skipped, wall, rec.get("env_steps"))
 
 
 CRASH_HOOK = "ILDBENCH_TEST_CRASH_CELL"
@@ -137,7 +166,7 @@ def exit_with_parent() -> None:
     process ends, however it ends (SIGTERM, SIGKILL, a crash). A sweep stopped by a signal
     to its own process would otherwise leave its running cell behind, training on beside
     whatever runs next and writing its record into the store after the sweep is gone
-    (session 74: two such cells ran on, sharing the cores with the restarted sweep's).
+    (two such cells once ran on, sharing the cores with the restarted sweep's).
     A cell ended this way writes no record (records are written whole, at the end), so it
     re-runs on resume. Nothing to do in a process that is no multiprocessing child."""
     import multiprocessing as mp
@@ -155,9 +184,11 @@ def exit_with_parent() -> None:
 
 
 def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
-           quiet: bool = False) -> None:
+           quiet: bool = False, cpu: int | None = None) -> None:
     import os
     exit_with_parent()
+    if cpu is not None:  # one core of the sweep's, before torch or XLA size their pools
+        os.sched_setaffinity(0, {cpu})
     r = request
     if os.environ.get(CRASH_HOOK) == f"{r.method}/{r.task}/{r.seed}":
         os._exit(70)
@@ -166,20 +197,22 @@ def _child(request: RunRequest, store_root: str, force: bool, jax_cache: str | N
 
 
 def _spawn(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
-           quiet: bool = False) -> int | None:
-    """Run one cell in a fresh spawned process; returns its exit code."""
+           quiet: bool = False, cpu: int | None = None) -> int | None:
+    """Run one cell in a fresh spawned process (pinned to `cpu` if given); returns its exit
+    code."""
     import multiprocessing as mp
     proc = mp.get_context("spawn").Process(
-        target=_child, args=(request, store_root, force, jax_cache, quiet))
+        target=_child, args=(request, store_root, force, jax_cache, quiet, cpu))
     proc.start()
     proc.join()
     return proc.exitcode
 
 
 def _run_isolated(p: Prepared, store: Store, force: bool, jax_cache: str | None,
-                  log: Callable[[str], None]) -> tuple[dict, bool]:
+                  log: Callable[[str], None], quiet: bool = False,
+                  cpu: int | None = None) -> tuple[dict, bool]:
     import os
-    code = _spawn(p.request, os.path.abspath(store.root), force, jax_cache)
+    code = _spawn(p.request, os.path.abspath(store.root), force, jax_cache, quiet, cpu)
     rec = store.get(p.run_id)
     if rec is not None and (code == 0 or rec.get("status") in ("ok", "diverged", "failed")):
         return rec, False
@@ -215,13 +248,14 @@ def warmup_request(r: RunRequest) -> RunRequest:
         eval=dataclasses.replace(r.eval, transfer=False, robustness=False))
 
 
-def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> None:
+def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None],
+            cpu: int | None = None) -> None:
     """Run the warm-up cell in a spawned process (so only the persistent cache carries
     over, as between the sweep's own cells) into a throwaway store."""
     tmp = tempfile.mkdtemp(prefix="ildbench-warmup-")
     t0 = time.perf_counter()
     try:
-        code = _spawn(warmup_request(p.request), tmp, True, jax_cache, quiet=True)
+        code = _spawn(warmup_request(p.request), tmp, True, jax_cache, quiet=True, cpu=cpu)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     r = p.request
@@ -230,11 +264,89 @@ def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None]) -> N
            "anyway)"))
 
 
+def worker_cpus(workers: int) -> list[int]:
+    """The first `workers` CPUs of this process's affinity set, one per parallel cell; a
+    clear error where the set has fewer."""
+    import os
+    cpus = sorted(os.sched_getaffinity(0))
+    if workers < 1:
+        raise ValueError(f"--workers {workers}: give at least 1")
+    if workers > len(cpus):
+        raise ValueError(f"--workers {workers}: this process may use {len(cpus)} CPU(s) "
+                         f"({cpus}); give at most {len(cpus)}, one core per cell")
+    return cpus[:workers]
+
+
+def run_parallel(prepared: Sequence[Prepared], store: Store, workers: int,
+                 force: bool = False, log: Callable[[str], None] = print,
+                 jax_cache: str | None = None, warm: bool = True) -> list[Outcome]:
+    """`workers` cells at a time, each in a spawned process pinned to its own CPU (the first
+    `workers` of the sweep's affinity set). Compile warm-ups run first, the same way, one per
+    compile group; then the cells, in order, each to the next free CPU. The children run
+    quietly: the sweep prints one line per finished cell."""
+    import queue
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+    cpus = worker_cpus(workers)
+    free: queue.Queue = queue.Queue()
+    for c in cpus:
+        free.put(c)
+    pending = [p for p in prepared if force or store.finished(p.run_id) is None]
+    pending_ids = {id(p) for p in pending}
+    progress = None
+
+    def on_a_cpu(fn, *args):
+        cpu = free.get()
+        try:
+            return fn(*args, cpu=cpu)
+        finally:
+            free.put(cpu)
+
+    out = []
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            if warm:
+                groups: dict[str, Prepared] = {}
+                for p in pending:
+                    if needs_warmup(p):
+                        groups.setdefault(compile_group(p), p)
+                for f in as_completed([pool.submit(on_a_cpu, warm_up, p, jax_cache, log)
+                                       for p in groups.values()]):
+                    f.result()
+            progress = Progress(len(prepared), len(pending), log, workers=workers)
+            for p in prepared:
+                if id(p) not in pending_ids:
+                    o = _outcome(p, store.finished(p.run_id), True, 0.0)
+                    progress.update(o)
+                    out.append(o)
+
+            def one(p: Prepared, cpu: int) -> Outcome:
+                t0 = time.perf_counter()
+                rec, skipped = _run_isolated(p, store, force, jax_cache, log, quiet=True,
+                                             cpu=cpu)
+                return _outcome(p, rec, skipped, time.perf_counter() - t0)
+
+            for f in as_completed([pool.submit(on_a_cpu, one, p) for p in pending]):
+                o = f.result()
+                progress.update(o)
+                out.append(o)
+    finally:
+        if progress is not None:
+            progress.close()
+    return out
+
+
 def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
               log: Callable[[str], None] = print, isolate: bool = True,
-              jax_cache: str | None = None, warm: bool = True) -> list[Outcome]:
+              jax_cache: str | None = None, warm: bool = True,
+              workers: int = 1) -> list[Outcome]:
     """`isolate`: each cell in a fresh spawned process (default); False: in this process.
-    `warm`: a compile warm-up before the first pending cell of each compile group."""
+    `warm`: a compile warm-up before the first pending cell of each compile group.
+    `workers` > 1: that many cells at a time, one CPU each (`run_parallel`)."""
+    if workers > 1:
+        if not isolate:
+            raise ValueError("parallel cells (--workers > 1) each need their own process; "
+                             "drop --in-process")
+        return run_parallel(prepared, store, workers, force, log, jax_cache, warm)
     to_run = sum(force or store.finished(p.run_id) is None for p in prepared)
     progress = Progress(len(prepared), to_run, log)
     out = []
@@ -245,8 +357,7 @@ def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
             done = None if force else store.finished(p.run_id)
             if done is None and warm and needs_warmup(p) and compile_group(p) not in warmed:
                 warmed.add(compile_group(p))
-                warm_up(p, jax_cache, log)
-                t0 = time.perf_counter()
+                warm_up(p, jax_cache, log)  # in this cell's wall time: the ETA counts it
             if done is not None:
                 rec, skipped = done, True
             elif isolate:
@@ -270,7 +381,7 @@ def _ray_cell(request: RunRequest, store_root: str, force: bool, jax_cache: str 
     p, rec, skipped = _cell(request, store_root, force, jax_cache, log=lambda s: None)
     return {"run_id": p.run_id, "status": rec["status"],
             "normalized": rec.get("final_normalized"), "skipped": skipped,
-            "wall_s": time.perf_counter() - t0}
+            "wall_s": time.perf_counter() - t0, "env_steps": rec.get("env_steps")}
 
 
 def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = None,
@@ -321,7 +432,7 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
         else:
             ref = cell.remote(p.request, root, force, jax_cache, cpus_per_run)
             pending[ref] = p
-    progress = Progress(len(prepared), len(pending), log)
+    progress = Progress(len(prepared), len(pending), log, workers=None)
     out = []
     try:
         for o in skipped:
@@ -333,7 +444,8 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
             try:
                 res = ray.get(ready[0])
                 o = Outcome(p.run_id, p.request.method, p.request.task, p.request.seed,
-                            res["status"], res["normalized"], res["skipped"], res["wall_s"])
+                            res["status"], res["normalized"], res["skipped"], res["wall_s"],
+                            res.get("env_steps"))
             except Exception as e:  # the worker died: nothing recorded for this cell
                 log(f"cell {p.run_id} ({p.request.method} on {p.request.task}) crashed in "
                     f"its Ray worker: {e}")

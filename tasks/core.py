@@ -40,7 +40,7 @@ def strong(tree):
     hopper writes to `metrics['reward_healthy']` on every step) gives a jitted function's
     output another type signature than its input had, so the next call traces and compiles
     again: a one-update compile warm-up then caches only the first executable and the timed
-    run pays for the second (SHAC on hopper: 150 s of a 180-s budget, session 14). Values
+    run pays for the second (SHAC on hopper: 150 s of a 180-s budget). Values
     are unchanged.
     """
     return jax.tree.map(_strong_leaf, tree)
@@ -179,8 +179,7 @@ def _like(given, copy: Task):
 def without_joint_limits(task: Task) -> Task:
     """A fresh copy of brax task `task` with its joint-range constraints removed (`sys.dof.limit
     = None`; the registry's cached task is left as it is). brax's generalized backend solves
-    joint ranges like contacts, which makes a loss through them rough (swimmer: README, ILD
-    section); the copy is the smooth surrogate. Errors for a task that has no limits."""
+    joint ranges like contacts, which makes a loss through them rough (swimmer: docs/methods/ild.md); the copy is the smooth surrogate. Errors for a task that has no limits."""
     env = build_env(task.spec)
     inner = env.unwrapped
     dof = getattr(getattr(inner, "sys", None), "dof", None)
@@ -205,7 +204,7 @@ def with_substep_remat(task: Task) -> Task:
     substep's intermediate values into per-substep buffers (hundreds of arrays, one copy each
     per substep); checkpointed, a substep stores only its input state and recomputes the
     rest next to its backward. The same function and gradient (to float32 round-off: tested);
-    what it buys is measured by `python -m methods.ild.benchmark` (results/JOURNAL.md). The
+    what it buys is measured by `python -m benchmarks.ild_speed`. The
     registry's cached task is left as it is. Errors for a task with no brax substep loop."""
     return _rebuilt_substep_loop(task, remat=True, lean=False, option="substep_remat")
 
@@ -576,7 +575,7 @@ def with_small_dots(task: Task) -> Task:
     `with_substep_remat` copies) whose physics step computes its small matrix products as
     multiply-and-sum (`tasks.small_dots.small_dots_as_sums`): the same function and gradient
     to float32 round-off (tested), which XLA's CPU backend runs faster where a step is made
-    of tiny products (swimmer's generalized step; results/JOURNAL.md, session 29). The
+    of tiny products (swimmer's generalized step; ). The
     registry's cached task is left as it is. Errors for a task with no brax physics step.
     Apply it after `with_substep_remat` (which builds its step from brax's substep and refuses
     a copy that has its own): the checkpointed substeps are then rewritten inside."""

@@ -87,8 +87,16 @@ def library_versions() -> dict[str, str]:
     import brax
     import jax
 
-    from bench import __version__
-    return {"brax": brax.__version__, "jax": jax.__version__, "ildbench": __version__}
+    return {"brax": brax.__version__, "jax": jax.__version__, "ildbench": harness_version()}
+
+
+def harness_version() -> str:
+    """The installed ildbench's version (the package metadata; "0.1.0" from a bare checkout)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("ildbench")
+    except PackageNotFoundError:
+        return "0.1.0"
 
 
 def save_demo(path: str, demo: Demo) -> str:

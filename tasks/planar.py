@@ -1,7 +1,7 @@
 """brax's positional control step for a scene that moves in one plane, written as the scene
 needs it: inverted_pendulum's, and reacher's without its gravity along its hinges
 (`planar_scene(drop_normal_gravity=True)`, in axes turned so that its plane is the model's
-x-z, session 71). ILD differentiates it in place of brax's step (`planar_adjoint`,
+x-z). ILD differentiates it in place of brax's step (`planar_adjoint`,
 `tasks.core.with_planar_adjoint`).
 
 A scene whose links all move in the x-z plane (slides along in-plane axes, hinges about y,
@@ -10,22 +10,18 @@ link's position in the plane, its rotation a turn about y and its angular veloci
 y. brax's positional substep (`brax.positional.pipeline.step`, with
 `tasks.positional_joints`' joint update, brax's for hinges and slides) still computes all
 three entries of every vector and all four of every quaternion, and its reverse mode
-differentiates them all: on inverted_pendulum the physics' gradient cost 3.9x brax's
-forward and 5.4x the training rollout's own (results/xeon/, session 65), most of an update.
+differentiates them all: on inverted_pendulum the physics' gradient cost about 4x brax's
+forward, most of an update.
 
 Here the same expressions are written over tuples whose out-of-plane entries are the Python
 constant 0.0 (the planar algebra below: a product with it is 0.0 and a sum with it the other
 term, decided while tracing), so each line of brax's 3-D code keeps its form and XLA sees
 only its in-plane terms: per link a position (x, z), a quaternion (w, y), a velocity (x, z)
 and an angular velocity (y). The out-of-plane entries brax computes are round-off (within
-about 1e-8 of zero on inverted_pendulum, results/JOURNAL.md, session 64); here they are
+about 1e-8 of zero on inverted_pendulum); here they are
 zero. The in-plane values are brax's to float32 round-off (tests/test_planar.py: positions
-within 1.5e-8, velocities within 3.3e-6 over a control step). At B = 32 one control step
-costs 0.115 ms forward against brax's 0.600 ms, and 0.92 ms as its value and VJP against
-brax's 4.54 ms, each about 8x its own forward (`python results/planar/scripts/step_cost.py`,
-session 66: results/planar/step_cost_session66.txt); since session 72's `_through_arrays`
-its value and VJP cost 0.56 ms against brax's 4.48 ms on inverted_pendulum and 1.13 ms
-against 7.62 ms on reacher (results/planar_reacher/step_cost_session72_*.txt).
+within 1.5e-8, velocities within 3.3e-6 over a control step). A control step's value and
+VJP cost several times less than brax's (docs/physics.md).
 
 `control_step` is one control step (`n_frames` substeps, the joint coordinates only at the
 end, as `lean_substeps` computes them) as a function of the state's centre-of-mass frames
@@ -238,7 +234,7 @@ def planar_scene(sys, drop_normal_gravity: bool = False) -> Scene | str:
     that the model's plane is x-z. Gravity along the plane's normal (reacher's, along its
     hinges) refuses the scene unless `drop_normal_gravity`: then the model leaves it out,
     as a scene without it (it only presses the links against their joints: in reacher's
-    128-step rollout q moved 3.6e-4 rad without it, session 71)."""
+    128-step rollout q moved 3.6e-4 rad without it)."""
     from brax import contact
     from brax.base import Transform
     from tasks.positional_joints import joint_rows
@@ -601,11 +597,10 @@ def _through_arrays(x_i, xd_i):
     In reverse mode this keeps XLA's CPU backend from fusing position_update's scalar VJP
     graph into the loops that pad the input arrays' cotangents, which evaluate that graph
     per array element (and, by their cost, what the entries share once per entry): on
-    reacher one such loop, the input quaternions' cotangent, took 6.0 of a substep VJP's
-    8.3 ms (session 72, B = 32; inverted_pendulum 0.40 of 0.67 ms). Read back from arrays, its
-    cotangent is padded once here, after position_update's VJP, and integrate's VJP reads
-    it: one control step's value and VJP ran 23x faster on reacher (14.8 -> 0.64 ms) and
-    1.55x on inverted_pendulum (0.79 -> 0.51 ms), the same to float32 round-off."""
+    reacher one such loop, the input quaternions' cotangent, took most of a substep VJP.
+    Read back from arrays, its cotangent is padded once here, after position_update's VJP,
+    and integrate's VJP reads it: the same values to float32 round-off, in a fraction of the
+    time."""
     dtype = jnp.result_type(*(a for t in x_i for a in t[0] + t[1] if not isinstance(a, float)))
     return _tuples(*_stacked(x_i, xd_i, dtype))
 
@@ -678,7 +673,7 @@ def _rows_bwd(kind, res, ct):
     the pads, and XLA's CPU backend fuses those pads, with the scalar computations that
     produce the cotangents, into loops over the whole array that compute every one of them
     once per array element: on hopper's spring step 98 such fusions per control step, 11.6
-    us each at B = 32, 0.17 s of a 0.38 s update (session 69). Stacked, each entry's
+    us each at B = 32, 0.17 s of a 0.38 s update. Stacked, each entry's
     computation runs once."""
     zero = jnp.zeros_like(ct[0][0])
     rows = []
@@ -711,10 +706,10 @@ def _planar(a, kind: str) -> tuple:
 def _tuples(pos, rot, vel, ang, stacked: bool = False):
     """The arrays' rows as tuples over the planar algebra. `stacked`: read through `_rows`,
     whose backward stacks the entries' cotangents (the spring step, whose substeps an
-    optimization barrier separates). The positional step reads them by slicing, as timed in
-    session 66: its unrolled substeps have no barrier, and with `_rows` XLA's CPU backend
+    optimization barrier separates). The positional step reads them by slicing: its
+    unrolled substeps have no barrier, and with `_rows` XLA's CPU backend
     compiled inverted_pendulum's 16-step gradient into a program that ran for minutes in
-    8.5 GiB (session 69)."""
+    8.5 GiB."""
     if not stacked:
         return ([(_planar(p, "pos"), _planar(r, "rot")) for p, r in zip(pos, rot)],
                 [(_planar(v, "vel"), _planar(w, "ang")) for v, w in zip(vel, ang)])

@@ -231,8 +231,8 @@ def _select(vectors, matrix, unstack: bool = False):
 def _unstack(a):
     """The rows of `a`, whose cotangent is their cotangents stacked (a concatenation) rather
     than reverse mode's sum of one padded row each, which XLA's CPU backend fused into one
-    loop that evaluates every row's cotangent for every entry (session 76: 63% of ant's
-    control-step VJP in the parent product's, 0.23 us per entry)."""
+    loop that evaluates every row's cotangent for every entry (most of ant's control-step VJP
+    went to that loop in the parent product's)."""
     return tuple(a[k] for k in range(a.shape[0]))
 
 
@@ -363,9 +363,8 @@ def _scanned_substeps(ls: LinkScene, t, tau, n_frames: int):
     entries in loops that recompute every entry per element, and no fusion across substeps
     (what the planar step's optimization barrier is for; on ant the compiled program kept
     no barrier). The backward stores each substep's input entries and recomputes the
-    substep. Session 76, ant at B = 32, one core: one control step's value and VJP 0.43x
-    the trained step's, against 0.69-0.80x with the substeps unrolled through arrays
-    (`results/spatial_links/step_vjp.py`); the update 1.41x faster paired."""
+    substep. On ant this scan is faster than the substeps unrolled through arrays
+    (docs/physics.md)."""
     def body(carry, _):
         return substep(ls, *carry, tau), None
     return jax.lax.scan(jax.checkpoint(body, prevent_cse=False), t, None,
@@ -389,9 +388,8 @@ def control_step(ls: LinkScene, sys, x_i, xd_i, act: jax.Array, n_frames: int):
     state's frames in `tasks.planar.OUTPUTS` order, q, qd) to float32 round-off. A 3-D
     scene's substeps are a scan (`_scanned_substeps`). A planar scene's are unrolled, and
     between them the frames go through arrays and an optimization barrier, as there: without
-    it one control step's value and VJP at B = 32 cost 1.13 ms on hopper and 2.46 ms on
-    walker2d, 1.45x and 1.22x the per-link step's; with it 0.49 ms and 1.06 ms, 0.74x and
-    0.49x the per-link step's (session 70, one core)."""
+    it one control step's value and VJP cost more than the per-link step's on hopper and
+    walker2d; with it, less."""
     dtype, num = x_i.pos.dtype, ls.links.num
     tau = joint_torques(ls.scene, act)
     full = ls.links.full

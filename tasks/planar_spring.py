@@ -1,12 +1,10 @@
 """brax's spring control step for a scene that moves in the x-z plane, written as the scene
 needs it: hopper's and walker2d's. ILD differentiates it in place of brax's step
 (`planar_adjoint` on the spring backend, `tasks.core.with_planar_adjoint`; hopper's and
-walker2d's default since session 69, and since session 70 in its form over all links at
+walker2d's default, and in its form over all links at
 once, `tasks.planar_links`, which reads its constants from here), as `tasks.planar` does for
 brax's positional step.
-Paired on one CPU core at B = 32 against the update through the trained step's
-hand-written VJPs, hopper's update ran 1.45x as fast (update / forward 3.25x -> 2.18x;
-results/planar_spring/paired_session69_hopper.csv, results/JOURNAL.md, session 69).
+What it buys, and how it is verified: docs/physics.md.
 
 Hopper and walker2d move in the x-z plane: a planar root (slides along x and z, a hinge
 about y), hinges about y, gravity along -z, capsules on links that touch a floor whose
@@ -423,7 +421,7 @@ def control_step(sc: SpringScene, sys, x_i, xd_i, act: jax.Array, n_frames: int)
     optimization barrier between substeps: without it XLA's CPU backend fused hopper's four
     substeps into loops that recompute each substep's values in every consumer, 415 ms a
     forward call at B = 32 instead of 0.46 ms, and its value and VJP took 2.3 ms instead of
-    1.3 ms (session 67)."""
+    1.3 ms."""
     dtype = x_i.pos.dtype
     tau = joint_torques(sc, act)
     arrays = (x_i.pos, x_i.rot, xd_i.vel, xd_i.ang)

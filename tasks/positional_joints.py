@@ -36,14 +36,10 @@ the joint forces' move to the links and the integration by `tasks.spring_adjoint
 hand-written VJPs, which brax's positional substep shares with the spring one.
 
 What it is for: fewer XLA operations per substep, forward and in reverse mode, so a faster
-ILD update (the update's time at B = 32 is its operation count times a roughly constant
-cost per operation: results/JOURNAL.md, session 49). Paired on one core (session 62,
-results/JOURNAL.md): the joints' update alone made reacher's update 1.16x faster and
-inverted_pendulum's 1.14x; with the hand-written VJPs 1.61x and 1.68x (update / forward
-5.08x -> 3.15x and 5.93x -> 3.53x). The joints' position corrections
-(`_translation_update`, `_rotation_update`) written over rows of links with multiply-and-sum
-products gained nothing (1.616x against 1.613x on reacher, 1.656x against 1.661x on
-inverted_pendulum) and were left out.
+ILD update (on one CPU core the update's time at B = 32 is roughly its operation count
+times a constant cost per operation; what it buys: docs/physics.md). The joints' position
+corrections (`_translation_update`, `_rotation_update`) written over rows of links with
+multiply-and-sum products gained nothing and were left out.
 
 At a locked angle that is exactly zero (these planar scenes' out-of-plane rotations, every
 step), brax's reverse mode passes part of the cotangent through `jnp.clip(angle, 0, 0)`,

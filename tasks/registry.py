@@ -2,7 +2,7 @@
 
 Every task runs 128-step episodes. The physics backend is pinned per task (brax's own
 default differs per class, so it is never left implicit); the measured forward and gradient
-env-steps/s that chose it are in results/backends.csv (`python -m tasks.measure_backends`).
+env-steps/s that chose it are in results/speed/backends.csv (`python -m benchmarks.backends`).
 
 The *matched state* is the vector imitation losses compare. For Brax tasks it is, per body,
 [pos (3), rot (4, quaternion wxyz), vel (3), ang (3)] taken from the pipeline state's world
@@ -41,7 +41,7 @@ class TaskSpec:
     env_kwargs: tuple[tuple[str, Any], ...] = ()
     """Extra constructor arguments for the environment, as (key, value) pairs."""
     paper_expert_return: float | None = None
-    """The paper's expert row (Table 2), for the README's ours-vs-paper table."""
+    """The paper's expert row (Table 2), for the ours-vs-paper expert table (docs/tasks.md)."""
     transfer: tuple[tuple[str, float], ...] | None = None
     """The test dynamics of the transfer column as (family, default magnitude) pairs
     (bench/perturb.py); for the brax tasks copied from `ildbench expert calibrate` (the expert

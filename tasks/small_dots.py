@@ -4,7 +4,7 @@ brax's physics multiplies many tiny matrices (3x3 rotations and inertias, a gene
 system's mass matrix and its Newton-Schulz inverse, constraint Jacobians), and vmapping a
 step over B environments turns each into a batched `dot_general` of B tiny products. XLA's
 CPU runtime runs every dot as a library call (one Eigen product per batch element; no XLA
-flag of jaxlib 0.7.2 changes this: results/JOURNAL.md, session 29), so a batch of 32 5x5
+flag of jaxlib 0.7.2 changes this: ), so a batch of 32 5x5
 products costs ~19 us where the same arithmetic as a broadcast multiply and a sum costs
 ~4 us, and fuses with its neighbours. Reverse mode doubles the count: each dot's transpose
 is two more dots, where a multiply-and-sum's is a broadcast multiply.
@@ -89,7 +89,7 @@ def _rewritten(param, max_terms: int):
     cond's branches) replaced by its rewrite, traced on the same input types; other
     parameters as they are. The primitive is then bound with its own parameters, whatever
     JAX names them (jax 0.11.2's scan has no `num_consts` parameter, which re-calling
-    lax.scan on the split operands needed; checked on the GPU image in session 37)."""
+    lax.scan on the split operands needed; checked on the GPU image)."""
     if isinstance(param, tuple) and param and all(isinstance(b, core.ClosedJaxpr)
                                                   for b in param):
         return tuple(_rewritten(b, max_terms) for b in param)

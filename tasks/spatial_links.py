@@ -11,8 +11,8 @@ matrices, and the constants that are the same on every link (a zero, a one) fold
 tracing. brax's own substep
 (`brax.spring.pipeline.step`; in ILD `tasks.spring_adjoint.step`) works on arrays whose
 last axis is a vector's 3 or a quaternion's 4 entries, and XLA's CPU backend spends much of
-its reverse mode on layout copies and scatter-adds around those small axes (results/
-JOURNAL.md, session 75: 308 scatter-adds in ant's compiled update). Here every array is
+its reverse mode on layout copies and scatter-adds around those small axes (hundreds of
+scatter-adds in ant's compiled update). Here every array is
 (batch, links).
 
 What the scenes need and no more:
@@ -34,12 +34,7 @@ What the scenes need and no more:
 `spatial_scene(sys)` reads the constants or says why the scene is not one this models;
 `control_step` is `tasks.planar_links.control_step` on them, whose substeps for such a
 scene are a scan of one checkpointed substep (`tasks.planar_links._scanned_substeps`).
-Paired on one CPU core at B = 32 against the update through hand_adjoint's backward, ant's
-update ran 1.41x as fast, update / forward 3.22x -> 2.19x (session 76,
-results/spatial_links/paired_session76_scan_ant.csv); unrolled through arrays between
-substeps, as the planar step runs, it ran 1.016x as fast. Humanoid's (session 77), paired
-the same way three times: 1.14x, 1.21x and 1.19x as fast, update / forward 3.52x -> 3.02x,
-3.20x -> 2.67x and 3.20x -> 2.71x (results/spatial_links/paired_session77_humanoid*.csv).
+What it buys, and how it is verified against XLA's reverse mode: docs/physics.md.
 """
 from __future__ import annotations
 

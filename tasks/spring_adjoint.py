@@ -20,29 +20,21 @@ maps as XLA's reverse mode of brax's code, in the state and in the system fields
 (tests/test_hand_adjoint.py, which a wrong sign or a swapped factor in any one term
 fails).
 
-What it is for: ILD's update is mostly brax's physics backward (64-78% of it:
-results/JOURNAL.md, session 46), and these hand-written backwards cost less inside the
-substep scan than XLA's reverse mode of the same lines. Jitted alone they gain little or
-nothing (`python results/substep/scripts/step_vjp_parts.py hopper`); inside the update they
-add up. Paired on one core (`python -m methods.ild.paired --variant task --variant
-task,hand_adjoint`), hopper's update ran 1.07x faster with `integrate` alone, 1.14x with
-`to_world` too, 1.22x with `inv_inertia` too (session 47), still 1.22x with
-`world_to_joint` too, 1.40x with the joint forces' tail too and 1.46x with the contacts'
-tail too (session 48); with all six, 1.47x on walker2d, 1.48x on ant and 1.32x on humanoid
-(README ILD speed; results/JOURNAL.md, sessions 47-48). Hand-written VJPs of brax's
-actuator forces (`actuator.to_tau`), of the 1-dof joints' constraint forces
-(`joints._one_dof`, in git history: commit 44abc09; session 48) and of each contact's
-impulse (commit 86d9b78; session 49) gained nothing there and were left out. `hinge`
-(session 51; `step(..., hinges=True)`, ILD's `hinge_forces`) is brax's 1-dof joint force
+What it is for: ILD's update is mostly brax's physics backward, and these hand-written
+backwards cost less inside the substep scan than XLA's reverse mode of the same lines (what
+each buys: docs/physics.md). Hand-written VJPs of brax's actuator forces
+(`actuator.to_tau`), of the 1-dof joints' constraint forces (`joints._one_dof`, in git
+history: commit 44abc09) and of each contact's impulse (commit 86d9b78) gained nothing there
+and were left out. `hinge`
+(`step(..., hinges=True)`, ILD's `hinge_forces`) is brax's 1-dof joint force
 for a hinge alone, the same values in fewer operations (XLA's reverse mode, no hand-written
-VJP): 1.03-1.09x faster updates on walker2d, ant and humanoid; ILD's default on the four
-spring tasks since session 52. In the same way (session 53), `planar_root` is brax's
+VJP); ILD's default on the four spring tasks. In the same way, `planar_root` is brax's
 `_three_dof` for a planar root (hopper's and walker2d's: two unlimited slides and a hinge,
 `step(..., planar=True)`, ILD's `planar_root`), which needs none of the Euler angles brax
 computes for it, and `rotary_two` and `rotary_three` are brax's `_two_dof` and `_three_dof`
 for joints that only turn (humanoid's: `step(..., rotary=True)`, ILD's `rotary_joints`):
 the same values in 12% (hopper) and 9% (humanoid) fewer operations per update, 1.04-1.13x
-faster updates paired; ILD's default on those tasks since session 53.
+faster updates paired; ILD's default on those tasks.
 
 The VJP of `integrate`, per link, for cotangents (gp, gr, gv, gw) of the outputs
 (pos', rot', vel', ang'):
@@ -76,9 +68,8 @@ hand their VJPs. A substep checkpoint whose policy saves them
 `tasks.core.with_hand_adjoint(saved_residuals=True)`, ILD's `saved_residuals`) stores them
 in the forward instead of recomputing them next to the backward, where XLA's CPU backend
 fuses their quaternion products and cross products into the VJPs' loops and evaluates
-them again per output entry (session 73: the costliest fusion of ant's update, a
-world_to_joint VJP loop over f32[32, 9, 4], ran at 0.157 ns per instruction and element
-against 0.02-0.04 for the plain loops). Without such a policy the names do nothing."""
+them again per output entry (the costliest fusion of ant's update, a world_to_joint VJP
+loop, ran at 4-8x the time per instruction and element of the plain loops). Without such a policy the names do nothing."""
 
 
 def _named(name: str, residuals: tuple) -> tuple:
@@ -404,10 +395,7 @@ def hinge(link, j: Transform, jd: Motion, dof, tau: jax.Array) -> Force:
     pin) left out, and only the one joint angle the limit reads computed (`psi` of
     `kinematics.axis_angle_ang`). The same values as brax's, bit for bit in one call
     (tests/test_hand_adjoint.py; fused into a whole rollout, to float32 round-off), in
-    fewer operations forward and in XLA's reverse mode: hopper's update (`python
-    results/substep/scripts/loop_ops.py hopper --variant task,hinge_forces`) runs 419,046
-    instead of 436,077; paired, ILD's update is 1.085x faster on ant, 1.034x on walker2d,
-    1.03x on humanoid and 0.99-1.02x on hopper (results/JOURNAL.md, sessions 51-52)."""
+    fewer operations forward and in XLA's reverse mode (hopper's update about 4% fewer)."""
     frame, _ = kinematics.link_to_joint_frame(dof.motion)
     a0, a1, a2 = frame.ang[0], frame.ang[1], frame.ang[2]
     vel = -j.pos * link.constraint_stiffness - jd.vel * link.constraint_vel_damping

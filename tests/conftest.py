@@ -16,8 +16,8 @@ def pytest_configure(config):
 
     Without this, both workers see every CPU: torch starts one intra-op thread per usable
     CPU (bench.runner.set_torch_threads) and XLA one compile/run thread per CPU, so a torch
-    test on one worker stalls behind the other worker's XLA compile. Measured in session 65
-    on the 2-core Xeon: DAC's and PWIL's pointmass conformance tests took 169 s and 177 s
+    test on one worker stalls behind the other worker's XLA compile. Measured on a 2-core
+    Xeon: DAC's and PWIL's pointmass conformance tests took 169 s and 177 s
     beside test_hand_adjoint, 7 s and 5 s alone; test_conformance + test_hand_adjoint +
     test_sb3 took 351 s unpinned and 179 s pinned. With one CPU each, every library sizes
     its pools to 1 and the workers stop competing. Only when there are at least as many
@@ -119,10 +119,10 @@ def temp_method(monkeypatch):
 
 @pytest.fixture
 def apg_timed(monkeypatch):
-    """methods.ild.benchmark with brax's APG stubbed out: every task has a reward gradient
+    """benchmarks.ild_speed with brax's APG stubbed out: every task has a reward gradient
     and an APG row reports 1000 env-steps/s. The list it returns gets, per APG row timed,
     whether that row's env runs a rewritten physics step (its own pipeline_step)."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     timed = []
     monkeypatch.setattr(benchmark, "reward_gradient_norm", lambda task: 1.0)
     monkeypatch.setattr(benchmark, "_apg_sps", lambda task, batch, hidden, repeats: (

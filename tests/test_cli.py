@@ -105,10 +105,43 @@ def test_quick_uses_the_cpu_preset_where_a_method_has_one(monkeypatch):
     from bench.cli import build_parser, cmd_quick
     seen = {}
     monkeypatch.setattr("bench.cli.cmd_sweep", lambda args: seen.update(
-        reqs=__import__("bench.cli", fromlist=["_requests"])._requests(
-            args, args.methods, args.tasks, [0])))
+        workers=args.workers, reqs=__import__("bench.cli", fromlist=["_requests"])._requests(
+            args, args.methods, args.tasks, [0])) or 0)
+    monkeypatch.setattr("bench.cli.starved_note", lambda *a: "")
     cmd_quick(build_parser().parse_args(["quick", "--store", "unused"]))
     presets = {r.method: r.preset for r in seen["reqs"]}
     assert presets["ild"] == "cpu" and presets["bc"] == "cpu"
-    assert {r.task for r in seen["reqs"]} == {"pointmass", "inverted_pendulum", "reacher"}
+    assert {r.task for r in seen["reqs"]} == {"pointmass", "inverted_pendulum"}
+    assert {r.budget.seconds for r in seen["reqs"]} == {40.0}
+    assert seen["workers"] == len(os.sched_getaffinity(0))  # one cell per usable CPU
     assert plugins.get_method("ild").presets["cpu"]["num_envs"] == 32
+
+
+def test_quick_note_names_the_methods_starved_at_its_budget(tmp_path):
+    """Under quick's table: a method whose cells here simulated fewer env steps than its
+    declared minimum is named with the median it got; one without a minimum, or above it,
+    is not."""
+    from bench.cli import starved_note
+    from bench.plugins import get_method
+    from bench.store import Store
+    store = Store(str(tmp_path))
+    for i, (m, steps) in enumerate([("dac", 5000), ("dac", 7000), ("bc", 0), ("ild", 10**6)]):
+        store.write({"run_id": f"r{i}", "method": m, "task": "pointmass", "status": "ok",
+                     "env_steps": steps})
+    note = starved_note(str(tmp_path), [get_method(m) for m in ("dac", "bc", "ild")],
+                        ["pointmass"])
+    assert "dac: about 6,000 env steps per cell here; its paper trains for 1,000,000" in note
+    assert "bc:" not in note and "ild:" not in note
+    assert starved_note(str(tmp_path), [get_method("bc")], ["pointmass"]) == ""
+
+
+def test_importing_the_harness_prints_no_third_party_noise():
+    """Neither mujoco's "Failed to import warp" (printed at import when the optional warp
+    package is absent) nor brax's maintenance warning reaches a run's output."""
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-c", "import bench, tasks; tasks.make_task('hopper')"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "warp" not in out.stdout + out.stderr
+    assert "Brax System" not in out.stdout + out.stderr

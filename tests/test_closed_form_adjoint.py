@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from methods.ild.benchmark import speed_setup, temp_bytes
+from benchmarks.ild_speed import speed_setup, temp_bytes
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_update, rollout_physics
 from tasks import make_task

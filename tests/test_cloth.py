@@ -173,8 +173,8 @@ def test_gradient_through_1_10_80_action_steps_is_finite(env, steps):
 
 
 def test_settled_state_is_float32_when_first_asked_for_under_x64():
-    """The cached reset state is computed in float32 whichever mode asks first (CI session
-    51: the float64 gradient test, run first in its worker, settled the cloth under x64 and
+    """The cached reset state is computed in float32 whichever mode asks first (the
+    float64 gradient test, run first in its worker, settled the cloth under x64 and
     failed on a float32 carry meeting float64 constants)."""
     sim.settled_state.cache_clear()
     with jax.experimental.enable_x64():

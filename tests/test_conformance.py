@@ -120,7 +120,7 @@ def test_a_method_that_retraces_its_update_fails_compiles_once(faulty):
 
 
 def test_one_extra_compile_at_the_second_update_fails_compiles_once(faulty):
-    """SHAC's bug (session 14): a weakly typed leaf written by the first update makes the
+    """SHAC's bug: a weakly typed leaf written by the first update makes the
     second compile again, and never again after; one extra compilation is caught."""
     found = _check(weak_metric=True)
     detail = found["compiles once"].detail

@@ -146,7 +146,7 @@ def test_arithmetic_bound_of_the_speed_ratio_by_hand():
     """Tiny nets, batch 1: actor (2,2,1) = 6 MACs, critic and D (3,2,1) = 8 each.
     TD3 = 6 + 2*8 + 3*2*8 + 3*(6+8) = 112; DAC adds the reward (8) and a D update:
     3*2*8 (fwd + bwd on a policy and an expert row) + 6*8 (gradient penalty) = 96."""
-    from methods.common.sb3_benchmark import dac_arithmetic_ratio
+    from benchmarks.sb3_speed import dac_arithmetic_ratio
     c = DACConfig(actor_hidden=(2,), critic_hidden=(2,), disc_hidden=(2,), batch_size=1,
                   disc_batch=1, policy_delay=1)
     assert dac_arithmetic_ratio(1, 1, c) == pytest.approx(112 / (112 + 8 + 96))

@@ -119,10 +119,9 @@ def test_demo_of_another_width_is_rejected(demo, tmp_path):
 # 128 while the batch of 16 reproduces them exactly (diff 0). Measured max |diff| over the
 # first 3 demos, batch 16: hopper 1.7e-4 (obs up to 10), humanoid 3.2e-4 (obs up to 140; two
 # of its 16 demos drift from steps 80 and 121), ant 0, walker2d 0, swimmer 0 (all 16 demos of
-# its open-loop expert, session 13; 5e-6 with the PPO expert's). XLA's CPU code also rounds
-# differently on another CPU: on session 30's AMD EPYC (AVX-512) walker2d replays to 8.1e-5
-# and swimmer to 5.6e-5 (the same at the commit before session 29: the machine, not the
-# code), so they get the contact-rich tasks' 5e-4. Misaligning the demo by one step moves
+# its open-loop expert; 5e-6 with the PPO expert's). XLA's CPU code also rounds
+# differently on another CPU: on an AMD EPYC (AVX-512) walker2d replays to 8.1e-5
+# and swimmer to 5.6e-5 (the machine, not the code), so they get the contact-rich tasks' 5e-4. Misaligning the demo by one step moves
 # them by 2.1 (swimmer) and 4.5 (walker2d) at most, 0.4-0.6 at a typical step.
 REPLAY_ATOL = {"hopper": 5e-4, "humanoid": 5e-4, "ant": 1e-4, "walker2d": 5e-4,
                "swimmer": 5e-4}

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tasks import expert
+from bench import expert
 from tasks.jax_compat import clip_compat, device_put_replicated
 
 

@@ -175,7 +175,7 @@ def test_hand_world_to_joint_is_braxs_and_its_vjp(name):
     assert min(float(jnp.max(jnp.abs(w))) for w in want_g) > 1.0
 
 
-# humanoid's case (72 s in session 54's run) is slow: humanoid trains with `rotary_joints`,
+# humanoid's case (~70 s) is slow: humanoid trains with `rotary_joints`,
 # whose test covers the same move to the links on its tree
 @pytest.mark.parametrize("name", ["hopper", pytest.param("humanoid", marks=pytest.mark.slow)])
 def test_hand_joints_resolve_is_braxs_and_its_vjp(name):
@@ -452,11 +452,11 @@ def test_planar_root_and_rotary_joints_refuse_what_they_do_not_model():
 
 
 def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
-    """Since session 50 ILD trains with the hand-written VJPs on every task whose physics they
+    """ILD trains with the hand-written VJPs on every task whose physics they
     model (brax's spring backend) and on no other: TASK_OVERRIDES turns `hand_adjoint` on
     exactly where `hand_adjoint_refusal` has no objection, on top of lean substeps (merged,
-    not replaced). Since session 52 `hinge_forces` too, on exactly the scenes among them whose
-    1-dof joints are all hinges (`only_hinges`: all four), and since session 53 `planar_root`
+    not replaced); `hinge_forces` too, on exactly the scenes among them whose
+    1-dof joints are all hinges (`only_hinges`: all four), and `planar_root`
     and `rotary_joints` on exactly the scenes that have those joints (`planar_roots`:
     hopper, walker2d; `rotary_joints`: humanoid). Turning `hand_adjoint` off takes them off
     with it; asking for `hinge_forces` without it is refused by name."""
@@ -486,7 +486,7 @@ def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
     off = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "false"})
     assert off.hand_adjoint is False and off.hinge_forces is False
     # --set hand_adjoint=false alone takes the task's hinge_forces with it (the method's
-    # `requires`, session 53); asked for beside it, hinge_forces is refused by name
+    # `requires`); asked for beside it, hinge_forces is refused by name
     alone = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"})
     assert alone == off and alone.lean_substeps and not alone.planar_root
     human = build_config(ild, "humanoid", "cpu", {"hand_adjoint": "false"})
@@ -506,7 +506,7 @@ def _saved(fn, *args) -> list[str]:
 
 
 def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
-    """`saved_residuals` (session 73): ant's checkpointed substep, as `with_hand_adjoint`
+    """`saved_residuals`: ant's checkpointed substep, as `with_hand_adjoint`
     wraps it, saves for its backward its inputs only; with the policy
     `save_only_these_names(*SAVED_RESIDUALS)` it saves, beside them, exactly the ten arrays
     world_to_joint's forward names (five per-link rotations: the link's, its parent's and
@@ -535,8 +535,8 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
 
 
 def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint():
-    """`saved_residuals` without `hand_adjoint` is refused by name. Since session 74 (their
-    cells re-run with it) ant and humanoid train with it and no other task does; where a
+    """`saved_residuals` without `hand_adjoint` is refused by name. Ant and humanoid
+    train with it and no other task does; where a
     task has hand_adjoint, `--set saved_residuals=true` turns it on and `=false` off, and
     `--set hand_adjoint=false` takes it off with the rest (the method's `requires`)."""
     from bench.plugins import build_config, get_method
@@ -583,7 +583,7 @@ def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
         assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces + also}) == cpu
         back = build_config(ild, task, "paper", {"hand_adjoint": "true"}, platform="gpu")
         assert back == dc.replace(cpu, **{f: False for f in also})  # spatial_links
-        # (CPU-measured, sessions 76-77) stays off on a GPU
+        # (CPU-measured) stays off on a GPU
     for task in TASK_OVERRIDES:
         if task not in ("ant", "humanoid"):
             assert (build_config(ild, task, "cpu", platform="gpu")
@@ -597,7 +597,7 @@ def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
     a function of it in the incoming state and the actions agree to float32 round-off
     (saving a residual rather than computing it again is the same function; XLA fuses the
     two programs differently)."""
-    from methods.ild.benchmark import task_config
+    from benchmarks.ild_speed import task_config
     task, ps, act = _states("ant")
     got = []
     for on in (False, True):

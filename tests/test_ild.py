@@ -375,7 +375,7 @@ def test_swish_remat_is_the_same_update_bit_for_bit_with_fewer_residuals():
     normalization in the path) equal swish_remat=False's bit for bit, and XLA's working
     memory for the gradient falls (hidden 512-256, the paper's, B = 4: the policy's stacked
     residuals are most of it)."""
-    from methods.ild.benchmark import temp_bytes
+    from benchmarks.ild_speed import temp_bytes
     out, mem = {}, {}
     for remat in (False, True):
         loss, params, keys = _setup(_cfg(swish_remat=remat, truncation=10))
@@ -550,7 +550,7 @@ def test_masked_states_neither_deviate_nor_cover():
 def test_speed_benchmark_reports_every_part_and_its_ratios():
     """The benchmark's rows on pointmass (no APG: brax's trainer wants a brax env): the
     per-step decomposition rows exist and the ratios are the rows' own quotients."""
-    from methods.ild.benchmark import run
+    from benchmarks.ild_speed import run
     rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=3)
     by = {r["what"]: r for r in rows}
     assert {"forward", "ild", "ild_no_gn", "ild_remat", "ild_chunk3", "ild_remat_chunk3",
@@ -586,7 +586,7 @@ def test_benchmark_set_times_the_task_config_with_fields_on_top(capsys):
     """`--set FIELD=VALUE` reaches the update the ild_task row times, under a name that
     says so: with remat=true the row keeps no backward residuals (as ild_remat, above);
     a field ILDConfig lacks, a bad value or a missing '=' is a usage error naming it."""
-    from methods.ild.benchmark import main, run
+    from benchmarks.ild_speed import main, run
     plain, = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=1, only=("ild_task",))
     remat, = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=1, only=("ild_task",),
                  overrides={"remat": "true", "truncation": "128"})
@@ -604,7 +604,7 @@ def test_benchmark_memory_is_xla_working_memory():
     """temp_bytes is the compiled function's scratch: an (N, N) matmul result that is then
     summed must be materialized once (N * N float32 = 360,000 bytes for N = 300), while its
     (300, 200) argument is not counted."""
-    from methods.ild.benchmark import temp_bytes
+    from benchmarks.ild_speed import temp_bytes
     x = jnp.ones((300, 200))
     t = temp_bytes(jax.jit(lambda x: (x @ x.T).sum()).lower(x).compile())
     assert 300 * 300 * 4 <= t < 300 * 300 * 4 + 300 * 200 * 4
@@ -614,9 +614,9 @@ def test_benchmark_counts_the_page_faults_of_a_calls_working_memory():
     """XLA's CPU runtime maps a call's working memory afresh on every call: a (4096, 16) x
     (16, 4096) float32 product that is then summed needs a 64 MiB scratch result, and each
     timed call faults in its 16,384 pages of 4 KiB (64 MiB). This is the per-call cost that
-    K updates in one scan pay once (results/JOURNAL.md); if a jaxlib upgrade starts reusing
+    K updates in one scan pay once; if a jaxlib upgrade starts reusing
     the buffer, this fails and that finding needs re-measuring."""
-    from methods.ild.benchmark import _time
+    from benchmarks.ild_speed import _time
     x = jnp.ones((4096, 16))
     t = _time(lambda x: (x @ x.T).sum(), (x,), 3)
     assert 64 * 2**20 <= t.temp < 65 * 2**20  # the product, plus 64 KiB of XLA's own
@@ -644,7 +644,7 @@ def test_benchmark_times_under_the_time_lock(tmp_path, monkeypatch):
     processes on one accelerator are then timed one at a time), compiling does not, and
     the lock is free again afterwards; a shared hold becomes exclusive on request; without
     a path nothing is locked."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     path = str(tmp_path / "lock")
     lock = benchmark.TimingLock(path)
     monkeypatch.setattr(benchmark, "TIME_LOCK", lock)
@@ -671,7 +671,7 @@ def test_apg_epochs_leaves_out_the_two_warmup_epochs(monkeypatch):
     'training/sps'; `after_epoch` runs after every epoch, warm-up ones included. brax's
     train is faked: it reports an initial evaluation without sps, then one per epoch."""
     from brax.training.agents.apg import train as apg
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     seen, after = {}, []
 
     def fake_train(**kw):
@@ -701,7 +701,7 @@ def test_apg_is_timed_on_its_third_epoch_under_the_lock(tmp_path, monkeypatch):
     is held shared over the first two (they compile and run in one call of apg.train, so no
     other process's timed section may run beside them), exclusively over the third, and
     released at the end."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     path = str(tmp_path / "lock")
     monkeypatch.setattr(benchmark, "TIME_LOCK", benchmark.TimingLock(path))
     states = []
@@ -725,7 +725,7 @@ def test_benchmark_leaves_apg_out_where_the_reward_has_no_gradient():
     its gradient is identically zero, XLA drops the backward pass, and its 'training/sps'
     (70k env-steps/s, the forward rollout's own) is no yardstick for ILD's update. pointmass's
     reward (minus the distance to the goal) has a gradient."""
-    from methods.ild.benchmark import reward_gradient_norm
+    from benchmarks.ild_speed import reward_gradient_norm
     assert reward_gradient_norm(make_task("inverted_pendulum")) == 0.0
     assert reward_gradient_norm(make_task("pointmass")) > 0.1
 
@@ -803,7 +803,7 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
 
 def test_acrobot_trains_through_its_closed_form_and_swimmer_with_small_dots_by_default(
         monkeypatch):
-    """Session 39's speed overrides (config.py): acrobot's resolved config, in either preset,
+    """The speed overrides of methods/ild/config.py: acrobot's resolved config, in either preset,
     differentiates through its closed-form step (and keeps full BPTT), swimmer's computes its
     step's small products as sums on top of substep remat; no other brax task takes either,
     a user's --set still turns them off, and asking for both rewrites on acrobot is a
@@ -841,10 +841,10 @@ def test_full_bptt_is_closer_to_the_true_gradient_on_inverted_pendulum():
     """Why inverted_pendulum overrides truncation (methods/ild/config.py): from the BC warm
     start the update's gradient at truncation 128 (per-step normalization on) is closer to
     the true gradient than at truncation 10. Only the order is asserted: the cosines depend
-    on round-off in the 1,000-step BC warm start, so on the CPU thread count (session 36,
-    B = 16: one thread 0.869 at 10 vs 0.999 at 128, two threads 0.316 vs 0.781; session 9's
-    -0.992 vs 1.000 at B = 32). ~7 minutes on the CPU (BC warm starts, full-BPTT compiles)."""
-    from methods.ild.probe import probe
+    on round-off in the 1,000-step BC warm start, so on the CPU thread count (B = 16:
+    one thread 0.869 at 10 vs 0.999 at 128, two threads 0.316 vs 0.781; -0.992 vs 1.000 at
+    B = 32). ~7 minutes on the CPU (BC warm starts, full-BPTT compiles)."""
+    from benchmarks.ild_probe import probe
     task = make_task("inverted_pendulum")
     demo = load_demo(task.spec.demo_path, task)
     short = probe(task, demo, ILDConfig(num_envs=16, truncation=10), eps=(1e-4,), lrs=(1e-5,))
@@ -872,12 +872,12 @@ class _LossLog:
         return None, None
 
 
-@pytest.mark.slow  # 169 s in session 54's run, the longest default test: CI's time
+@pytest.mark.slow  # ~170 s, longer than any default test
 def test_truncated_bptt_climbs_inverted_pendulums_loss_and_full_bptt_descends_it():
     """Why inverted_pendulum trains at truncation 128 (methods/ild/config.py), by training:
     40 ILD updates from the same BC warm start (B = 16, one update per call). At truncation
     10 the loss climbs from 0.0105 to ~3.4 and stays there (the pole falls); at 128 it
-    settles at ~0.02 after Adam's first steps (session 37, one and two CPU threads alike:
+    settles at ~0.02 after Adam's first steps (one and two CPU threads alike:
     last ten updates 3.43 / 3.49 vs 0.021 / 0.016). ~90-140 s (two compiles)."""
     from methods.ild.train import train
     task = make_task("inverted_pendulum")
@@ -895,7 +895,7 @@ def test_truncated_bptt_climbs_inverted_pendulums_loss_and_full_bptt_descends_it
 
 
 def test_probe_without_joint_limits_lets_a_joint_pass_its_range():
-    """`probe --no-joint-limits` (the swimmer finding, ILD section of the README): the copy's
+    """`probe --no-joint-limits` (the swimmer finding, docs/methods/ild.md): the copy's
     cart, pushed at full force for 40 steps, runs past its slider's range [-1, 1]; the
     registry's task (left as it was) stops it there. pointmass has no limits: a clear error."""
     from tasks.core import without_joint_limits
@@ -944,10 +944,10 @@ def test_ild_joint_limits_off_differentiates_through_the_limitless_copy(monkeypa
 
 
 def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
-    """methods.ild.probe on pointmass (linear dynamics, no contacts): central differences at
+    """benchmarks.ild_probe on pointmass (linear dynamics, no contacts): central differences at
     eps 1e-3 equal the analytic directional derivative, and Adam's first step at a tiny lr
     lowers the loss (a descent direction), at a huge one raises it."""
-    from methods.ild.probe import probe
+    from benchmarks.ild_probe import probe
     task = make_task("pointmass")
     demo = load_demo(task.spec.demo_path, task)
     r = probe(task, demo, _cfg(bc_updates=20), eps=(1e-3,), lrs=(1e-7, 1.0))
@@ -974,7 +974,7 @@ def test_substep_remat_computes_the_same_physics_and_gradient():
     step: the same states and the same gradient through 3 steps (acrobot: brax's generalized
     pipeline, 4 substeps per step), to float32 round-off, with less of the backward pass's
     working memory; the registry's cached task keeps brax's own pipeline_step."""
-    from methods.ild.benchmark import temp_bytes
+    from benchmarks.ild_speed import temp_bytes
     from tasks.core import open_loop, with_substep_remat
     task = make_task("acrobot")
     sub = with_substep_remat(task)
@@ -1032,7 +1032,7 @@ def test_substep_remat_is_the_default_where_brax_has_substeps():
 
 
 def test_speed_benchmark_runs_the_rows_asked_for():
-    from methods.ild.benchmark import run
+    from benchmarks.ild_speed import run
     rows = run("pointmass", batch=4, repeats=1, with_apg=False, chunk=2,
                only=("forward", "ild_substep", "ild_both", "ild_substep_chunk", "dots"))
     assert [r["what"] for r in rows] == ["forward"]  # pointmass has no brax pipeline
@@ -1043,11 +1043,10 @@ def test_speed_benchmark_runs_the_rows_asked_for():
 def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeypatch):
     """`ild_task` times ILD's update as the task trains (class defaults + TASK_OVERRIDES, at
     the benchmark's batch): acrobot's closed form with full BPTT, swimmer's small dots,
-    hopper's lean substeps, hand-written VJPs, hinge forces and planar root (sessions 41,
-    50, 52, 53) and the planar adjoint (session 69),
+    hopper's lean substeps, hand-written VJPs, hinge forces and planar root and the planar adjoint,
     pointmass's the `ild` row's own config, whose timing it then reports again rather than
     compiling the same update twice."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     acro = benchmark.task_config("acrobot", 8)
     assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
     assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
@@ -1073,7 +1072,7 @@ def test_speed_benchmark_times_apg_on_small_dots_physics_alone(apg_timed):
     ILD process and apg_dots in the APG process. apg_dots alone runs brax's APG on the
     rewritten physics (`with_small_dots`: the env's pipeline_step replaced) and nothing
     else; apg runs it on brax's own; pointmass (no brax step) leaves the dots rows out."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     assert benchmark.expand_rows(("forward", "dots", "apg_dots", "apg")) == (
         "forward", "forward_dots", "ild_dots", "ild_substep_dots", "apg_dots", "apg")
     assert benchmark.expand_rows(("ild_substep_dots",)) == ("ild_substep_dots",)
@@ -1093,7 +1092,7 @@ def test_speed_benchmark_times_apg_through_the_closed_form_backward(apg_timed):
     """'closed_form' is two rows, each a group of its own: apg_closed_form runs brax's APG on
     acrobot's closed-form-adjoint physics (like with like for ild_closed_form); tasks with
     no closed-form step (hopper) leave both rows out."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     assert benchmark.expand_rows(("closed_form", "apg")) == (
         "ild_closed_form", "apg_closed_form", "apg")
     timed = apg_timed
@@ -1105,7 +1104,7 @@ def test_speed_benchmark_times_apg_through_the_closed_form_backward(apg_timed):
 def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
     # Rows timed under another XLA code generator are not comparable: the CSV says which.
     import pandas as pd
-    from methods.ild.benchmark import main
+    from benchmarks.ild_speed import main
     out = str(tmp_path / "speed.csv")
     args = ["--task", "pointmass", "--batch", "4", "--repeats", "1", "--no-apg",
             "--rows", "forward", "--out", out]
@@ -1125,14 +1124,14 @@ def test_speed_benchmark_csv_names_the_xla_flags(tmp_path, monkeypatch):
 
 def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(tmp_path,
                                                                              capsys):
-    """methods.ild.paired's summary, on hand-made rows: medians over rounds of the seconds
+    """benchmarks.ild_paired's summary, on hand-made rows: medians over rounds of the seconds
     and of the per-round ratios, their ranges, and update / forward from the fastest rounds
     (fastest update over fastest forward, here from different rounds); rows without the
     forward (NaN in a CSV) get no forward figures; a second variant gets its speed-up over
     the first from the rounds both ran. `--summarize` reads an earlier run's CSV
     and refuses a file that is not one, naming it."""
     import pandas as pd
-    from methods.ild import paired
+    from benchmarks import ild_paired as paired
     rows = [{"task": "hopper", "variant": "task", "round": i, "seconds": s, "apg_seconds": a,
              "over_apg": round(a / s, 3), "forward_seconds": f, "over_forward": round(s / f, 3)}
             for i, (s, a, f) in enumerate([(0.30, 0.60, 0.10), (0.20, 0.50, 0.08),
@@ -1160,19 +1159,19 @@ def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(t
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     with pytest.raises(SystemExit):
         paired.main(["--summarize", str(tmp_path / "other.csv")])
-    assert "other.csv: not rows of methods.ild.paired" in capsys.readouterr().err
+    assert "other.csv: not rows of benchmarks.ild_paired" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         paired.main(["--task", "hopper"])
     assert "--variant is required" in capsys.readouterr().err
 
 
 def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
-    """methods.ild.paired: every variant is timed once between two of APG's epochs and
+    """benchmarks.ild_paired: every variant is timed once between two of APG's epochs and
     each round's ratio is APG's seconds per update over the variant's, from that round; APG's
     first two epochs (compiles, on newer JAX both) are no round. Without APG (`apg=False`,
     `--apg-physics none`) the variants run round after round, a first round left out."""
-    from methods.ild import paired
-    from methods.ild.benchmark import APG_WARMUP_EPOCHS
+    from benchmarks import ild_paired as paired
+    from benchmarks.ild_speed import APG_WARMUP_EPOCHS
     calls = []
 
     def fake_apg(task, batch, hidden, updates, rounds, after_epoch):
@@ -1264,8 +1263,8 @@ def test_kernel_grad_group_is_the_same_gradient_to_round_off_on_every_brax_task(
     tasks' float32 rollouts differ between any two compiled programs (ant's G = 1 loss
     2.7095 in its forward program, 2.7183 in its value_and_grad: round-off the contacts
     amplify), so the comparison there would test chaos, not the grouping
-    (results/JOURNAL.md, session 61)."""
-    from methods.ild.benchmark import speed_setup, task_config
+   ."""
+    from benchmarks.ild_speed import speed_setup, task_config
     from tasks.core import Task
     task = make_task(task_name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
@@ -1292,8 +1291,8 @@ def test_swish_remat_is_the_same_update_bit_for_bit_on_every_brax_task(task_name
     """swish_remat's claim on the paper's 8 tasks, each with the config it trains with (its
     TASK_OVERRIDES: hand-written VJPs, closed form, small dots) at B = 8: the parameters and
     metrics after one update equal swish_remat=False's bit for bit."""
-    from methods.ild.benchmark import speed_setup, task_config
-    from methods.ild.paired import compiled_chunk
+    from benchmarks.ild_speed import speed_setup, task_config
+    from benchmarks.ild_paired import compiled_chunk
     task = make_task(task_name)
     after = {}
     for remat in (False, True):

@@ -144,7 +144,7 @@ def test_a_task_with_a_weak_reference_stays_in_the_table_but_not_the_aggregates(
 
     from bench.report import aggregates, write_report
     from tasks import TASKS
-    # No registered task has a weak reference since swimmer's open-loop expert (session 13);
+    # No registered task has a weak reference since swimmer's open-loop expert;
     # swimmer plays one here, as it did with its old PPO expert.
     assert not any(spec.weak_reference for spec in TASKS.values())
     monkeypatch.setitem(TASKS, "swimmer", dataclasses.replace(

@@ -154,7 +154,7 @@ def test_lean_substeps_config_and_rollout_physics(monkeypatch):
 
 
 def test_lean_substeps_are_the_default_wherever_a_task_allows_them():
-    """Since session 41 ILD trains with lean substeps on every task that can take them (brax
+    """ILD trains with lean substeps on every task that can take them (brax
     spring or positional physics, motor actuators) and on no other: TASK_OVERRIDES turns it
     on exactly where `lean_substeps_refusal` has no objection, and `build_config` gives those
     tasks a config with it (inverted_pendulum keeping its full BPTT)."""
@@ -177,7 +177,7 @@ def test_speed_benchmark_lean_rows(apg_timed):
     """'lean' is three rows, each a group of its own: forward_lean and ild_lean time ILD on
     the lean physics, apg_lean brax's APG on it (its env's pipeline_step replaced, like with
     like); generalized tasks leave all three out."""
-    from methods.ild import benchmark
+    from benchmarks import ild_speed as benchmark
     assert benchmark.expand_rows(("forward", "lean", "apg")) == (
         "forward", "forward_lean", "ild_lean", "apg_lean", "apg")
     timed = apg_timed
@@ -189,10 +189,10 @@ def test_speed_benchmark_lean_rows(apg_timed):
 
 
 def test_paired_times_lean_variants_against_apg_on_the_same_lean_physics():
-    """methods.ild.paired: variants that all set lean_substeps time APG on lean substeps, and
+    """benchmarks.ild_paired: variants that all set lean_substeps time APG on lean substeps, and
     APG's copy is not checkpointed (brax's APG does not rematerialize; ILD's does, as its
     default substep_remat says); a mix of lean and not is refused unless APG is brax's."""
-    from methods.ild import paired
+    from benchmarks import ild_paired as paired
     base = ILDConfig(num_envs=32)
     lean = {v: paired.parse_variant(v, 32) for v in ("lean_substeps", "lean_substeps,chunk=4")}
     assert paired.apg_physics(lean, base) == "lean_substeps"

@@ -85,7 +85,7 @@ def test_ildbench_reexecutes_itself_once_with_the_tunable(able, execve_calls, mo
 _UPDATES = r"""
 import hashlib, json, resource
 import jax, numpy as np
-from methods.ild.benchmark import speed_setup
+from benchmarks.ild_speed import speed_setup
 from methods.ild.config import ILDConfig
 from methods.ild.train import initial_state, make_chunk, make_update
 from tasks import make_task
@@ -119,7 +119,7 @@ def _updates(tunables: str | None) -> dict:
                     reason="glibc's huge-page tunable cannot act on this machine")
 def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
     """Four ILD updates on pointmass (B = 128: ~57 MiB of backward-pass residuals per call;
-    B = 32 held 50 MiB until session 60's `swish_remat` cut it to 14, under the threshold),
+    at B = 32 `swish_remat` keeps it at 14 MiB, under the threshold),
     in a process without and one with the tunable: the same parameters bit for bit, and
     (where the kernel's huge pages are 'madvise', so only the tunable asks for them) a
     fraction of the page faults per call."""
@@ -133,9 +133,8 @@ def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():
 
 def test_python_m_bench_cli_reexecutes_as_ildbench_does(able, execve_calls, monkeypatch):
     """`python -m bench.cli` takes `ildbench`'s path (`entry`), huge-page tunable included:
-    before session 74 it ran `main` alone, and sweeps started that way (inverted_pendulum's
-    and reacher's ILD cells, sessions 66 and 72; session 74's first start) ran without the
-    tunable the other cells had."""
+    run as `main` alone, sweeps started that way would run without the tunable the other
+    cells had."""
     import runpy
     import warnings
     monkeypatch.setattr(sys, "argv", ["/somewhere/bench/cli.py", "tasks"])

@@ -12,7 +12,7 @@ from brax import com, kinematics
 from brax.positional import pipeline
 
 import tasks.planar as planar
-from methods.ild.benchmark import speed_setup, task_config
+from benchmarks.ild_speed import speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.train import make_rollout_loss, rollout_physics
 from tasks import make_task
@@ -204,7 +204,7 @@ def test_reacher_planar_adjoint_is_the_same_rollout_and_nearly_its_gradient():
     """reacher as it trains (planar_adjoint with planar_normal_gravity, truncation 10) against
     it without planar_adjoint (positional_joints' backward, gravity included), over 16 steps:
     the same loss bit for bit (brax's step computes the rollout either way) and every
-    gradient leaf within 1e-4 of its largest entry (measured: 1.2e-5, session 72): the
+    gradient leaf within 1e-4 of its largest entry (measured: 1.2e-5): the
     gravity along the hinges that the planar backward leaves out moves it less than that."""
     (want_l, want), (got_l, got) = _rollout_gradients(16, {"planar_adjoint": False}, {},
                                                       name="reacher")
@@ -355,12 +355,11 @@ def test_reacher_control_step_is_braxs_step_without_gravity():
 def test_reacher_planar_vjp_is_the_trained_steps_with_gravity():
     """At reacher's rollout states (sagged ~2 mm under gravity along its hinges), the planar
     VJP without gravity against the trained step's with it, for a sine cotangent of the
-    in-plane entries: within 1e-4 of each leaf's largest entry (measured 6.3e-5, session
-    71): the gravity planar_normal_gravity leaves out moves the gradient less than that."""
+    in-plane entries: within 1e-4 of each leaf's largest entry (measured 6.3e-5): the gravity planar_normal_gravity leaves out moves the gradient less than that."""
     _, ours, args, ps = _reacher_steps(gravity=True)
     task = make_task("reacher")
     env = task.env.unwrapped
-    # the step reacher trained with before session 72: positional_joints' backward, gravity in
+    # reacher's step without planar_adjoint: positional_joints' backward, gravity in
     cfg = task_config("reacher", 8, {"planar_adjoint": False})
     assert not cfg.planar_normal_gravity and cfg.positional_joints
     trained_step = rollout_physics(task, cfg).env.unwrapped.pipeline_step
@@ -388,10 +387,10 @@ def test_step_cost_script_times_its_rows(results_script, task):
 
 
 def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
-    """Since session 66 ILD trains with `planar_adjoint` on every task whose scene the planar
+    """ILD trains with `planar_adjoint` on every task whose scene the planar
     form models and on no other: TASK_OVERRIDES turns it on exactly where
-    `planar_adjoint_refusal` has no objection (inverted_pendulum; hopper and walker2d since
-    session 69; reacher since session 72, with `planar_normal_gravity`, on exactly where
+    `planar_adjoint_refusal` has no objection (inverted_pendulum; hopper and walker2d;
+    reacher, with `planar_normal_gravity`, on exactly where
     the scene needs it to be allowed), merged with that task's other overrides; `--set
     planar_adjoint=false` turns it off alone (and planar_normal_gravity with it)."""
     from bench.plugins import build_config, get_method

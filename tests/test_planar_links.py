@@ -112,7 +112,7 @@ def test_link_control_step_vjp_is_the_per_link_steps(name):
 
 
 def test_planar_links_is_on_for_the_spring_tasks_planar_adjoint_takes():
-    """Since session 70 ILD trains with `planar_links` wherever planar_adjoint runs the
+    """ILD trains with `planar_links` wherever planar_adjoint runs the
     spring step (hopper, walker2d) and nowhere else; `--set planar_links=false` turns it off
     alone, and `--set planar_adjoint=false` takes it with it."""
     from bench.plugins import build_config, get_method

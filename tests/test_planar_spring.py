@@ -12,7 +12,7 @@ from brax import com, contact, kinematics
 
 import tasks.planar as planar
 import tasks.planar_spring as planar_spring
-from methods.ild.benchmark import speed_setup, task_config
+from benchmarks.ild_speed import speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.train import make_rollout_loss, rollout_physics
 from tasks import make_task
@@ -109,7 +109,7 @@ def _control_steps(name: str, form=None, without: str = "planar_adjoint", batch:
         step = lambda p_, xi_, xdi_, a_: env.pipeline_step(  # noqa: E731
             _consistent(sys, p_, xi_, xdi_), a_)
         # the masses through a barrier: on humanoid, XLA's CPU constant folding of the step
-        # with the state's masses as constants gave NaN frames (session 77; not with them as
+        # with the state's masses as constants gave NaN frames (not with them as
         # arguments, nor op by op)
         live = ps.replace(mass=jax.lax.optimization_barrier(ps.mass))
         return planar.cotangent(jax.vmap(step)(live, xi, xdi, a))
@@ -130,8 +130,8 @@ def test_spring_control_step_is_the_trained_step(name):
     assert_same_step(want, got, pos=5e-7, q=5e-7, moves=1.0)
 
 
-# the trained step's reverse mode, compiled: ~1.5 minutes on one core (in the default run since
-# session 69: planar_adjoint is hopper's and walker2d's default)
+# the trained step's reverse mode, compiled: ~1.5 minutes on one core (in the default run:
+# planar_adjoint is hopper's and walker2d's default)
 def test_spring_control_step_vjp_is_the_trained_steps():
     """hopper, contacts active: the VJP in the centre-of-mass frames and the action, for a
     sine cotangent of the in-plane entries of every output, against the reverse mode of

@@ -125,7 +125,7 @@ def test_positional_joints_is_the_same_rollout_gradient(name):
     the task trains with (its TASK_OVERRIDES) but `planar_adjoint` (whose backward would
     stand in for both), with and without `positional_joints`: the loss to rtol 1e-5 and
     every gradient leaf within 1e-4 of its largest entry."""
-    from methods.ild.benchmark import speed_setup, task_config
+    from benchmarks.ild_speed import speed_setup, task_config
     task = make_task(name)
     task = Task(spec=dataclasses.replace(task.spec, episode_length=16), env=task.env)
     out = {}

@@ -1,5 +1,5 @@
 """tasks.small_dots: small matrix products as multiply-and-sum, the same function and
-gradient (results/JOURNAL.md, session 29)."""
+gradient."""
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -138,8 +138,8 @@ def test_rotary_joint_forces_are_braxs_on_humanoid():
 def test_spatial_control_step_is_the_trained_step(name, vel_tol, q_tol):
     """Every frame and joint coordinate of the step ILD trains with, to float32 round-off,
     feet on the floor: positions and rotations within 5e-7, velocities within `vel_tol`,
-    joint angles within `q_tol` (measured: ant, session 76, 1.5e-7, 1.0e-5 and 2.4e-7, joint
-    velocities up to 1.5 rad/s; humanoid, session 77, 1.8e-7, 2.4e-5 and 1.7e-6, up to 5.4
+    joint angles within `q_tol` (measured: ant.5e-7, 1.0e-5 and 2.4e-7, joint
+    velocities up to 1.5 rad/s; humanoid.8e-7, 2.4e-5 and 1.7e-6, up to 5.4
     rad/s)."""
     trained, ours, args, dist = _control_steps(name)
     assert int((dist < 0).sum()) >= (8 if name == "ant" else 4)  # contacts in play
@@ -166,7 +166,7 @@ def test_spatial_control_step_vjp_is_the_trained_steps(name):
     step's (hand_adjoint's VJPs), the input rotation's cotangent along the unit sphere (brax's
     inverse inertia R I R^T is |q|^4 I off it, which the form writes as I: the one direction
     they differ in, and one the previous step's normalization takes out of every gradient
-    it passes back). Measured within 2.3e-6 (ant) and 1.9e-6 (humanoid, session 77)."""
+    it passes back). Measured within 2.3e-6 (ant) and 1.9e-6 (humanoid)."""
     trained, ours, args, _ = _control_steps(name)
     _, want_pull = jax.vjp(trained, *args)
     got, got_pull = jax.vjp(ours, *args)
@@ -188,9 +188,8 @@ def test_spatial_control_step_vjp_is_the_trained_steps(name):
 def test_spatial_links_is_the_same_rollout_and_gradient(name, steps):
     """ILD's rollout loss and policy gradient over `steps` steps (B = 8, the task's config,
     spatial_links off and on): the same loss bit for bit (the task's own step computes the
-    rollout) and every gradient leaf within 3e-5 of its largest entry. Measured: ant,
-    session 76, 16 steps, 1.25e-5 (two of hidden_0's 512 bias entries over 1e-5);
-    humanoid, session 77, 4 steps, 1.0e-5 (hand_adjoint on against off, two exact forms of
+    rollout) and every gradient leaf within 3e-5 of its largest entry. Measured: ant, 16 steps, 1.25e-5 (two of hidden_0's 512 bias entries over 1e-5);
+    humanoid, 4 steps, 1.0e-5 (hand_adjoint on against off, two exact forms of
     brax's derivative: 2.7e-6). Over 16 steps humanoid's differ by 4.5e-4 (hand_adjoint on
     against off: 9.3e-5, the loss itself 2e-7 apart, each compiled its own way): both grow
     about 40x from 4 to 16 steps: round-off amplified by humanoid's stiff joints (27000),
@@ -201,8 +200,8 @@ def test_spatial_links_is_the_same_rollout_and_gradient(name, steps):
 
 @pytest.mark.parametrize("name", ["ant", "humanoid"])
 def test_spatial_links_is_on_for_ant_and_humanoid_on_a_cpu(name):
-    """Since session 76 ILD trains ant with `spatial_links` on a CPU (SPATIAL_LINKS_TASKS),
-    since session 77 humanoid, and no other task does; `--set spatial_links=false` turns it
+    """ILD trains ant and humanoid with `spatial_links` on a CPU (SPATIAL_LINKS_TASKS),
+    and no other task does; `--set spatial_links=false` turns it
     off alone (the forward's hand_adjoint and its pieces stay), and the rollout physics
     differentiates through the form over the links (the step's forward is the task's own:
     brax's values)."""

@@ -153,6 +153,48 @@ def test_progress_eta_from_mean_wall_time():
     assert p.eta_s() == pytest.approx(2 * 15.0)                    # 2 left x mean 15 s
 
 
+def test_progress_eta_divides_by_the_parallel_workers_and_paces_ray_by_the_clock():
+    """Two cells at a time finish the 6 cells left in 3 rounds of the mean wall (15 s): 45 s,
+    not 90 (the sequential formula's). Without a known parallelism (Ray) the ETA is the
+    sweep's own pace: 40 s elapsed over 2 cells run, times 6 left."""
+    p = Progress(total=8, to_run=8, log=lambda s: None, workers=2)
+    p.update(Outcome("b", "m", "t", 1, "ok", 0.5, False, 10.0))
+    p.update(Outcome("c", "m", "t", 2, "ok", 0.5, False, 20.0))
+    assert p.eta_s() == pytest.approx(6 * 15.0 / 2)
+    now = [100.0]
+    q = Progress(total=8, to_run=8, log=lambda s: None, workers=None, clock=lambda: now[0])
+    now[0] = 140.0
+    q.update(Outcome("b", "m", "t", 1, "ok", 0.5, False, 35.0))
+    q.update(Outcome("c", "m", "t", 2, "ok", 0.5, False, 38.0))
+    assert q.eta_s() == pytest.approx(6 * 40.0 / 2)
+
+
+def test_progress_lines_print_scores_to_three_decimals_and_the_env_steps():
+    lines = []
+    p = Progress(total=1, to_run=1, log=lines.append)
+    p.update(Outcome("a", "dac", "hopper", 0, "ok", 0.9962916401272208, False, 1.0, 51216))
+    assert "normalized 0.996, 51k env steps" in lines[0]
+    assert sweep.format_steps(950) == "950" and sweep.format_steps(20_480_000) == "20.48M"
+
+
+def test_parallel_cells_run_one_per_cpu_and_skip_finished_ones(tmp_path):
+    """Two workers: every cell of the grid is recorded once, each by a process pinned to a
+    single CPU (its record's resources say 1), and a second sweep skips them all."""
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs two CPUs")
+    store = Store(str(tmp_path / "runs"))
+    prepared = [prepare(_bc(s)) for s in range(3)]
+    lines = []
+    out = run_local(prepared, store, log=lines.append, workers=2, warm=False)
+    assert sorted(o.seed for o in out) == [0, 1, 2] and all(o.status == "ok" for o in out)
+    recs = [store.get(p.run_id) for p in prepared]
+    assert all(r["resources"]["cpus"] == 1 for r in recs)
+    again = run_local(prepared, store, log=lambda s: None, workers=2, warm=False)
+    assert all(o.skipped for o in again)
+    with pytest.raises(ValueError, match="--workers 99: this process may use"):
+        run_local(prepared, store, log=lambda s: None, workers=99)
+
+
 _CHILD = '''
 import os, sys, time
 def run(path, watch):
@@ -188,8 +230,8 @@ def _alive(pid: int) -> bool:
 def test_a_spawned_cell_ends_with_its_sweep(tmp_path, watch):
     """A sweep's spawned cell process (`_child` calls `exit_with_parent` first) ends within
     seconds of its parent being killed (SIGKILL: no handler runs in the parent). Without the
-    watcher the same child runs on after its parent is gone (session 74: two orphaned cells
-    trained on beside a restarted sweep and wrote their records into its store)."""
+    watcher the same child runs on after its parent is gone (orphaned cells
+    would train on beside a restarted sweep and write their records into its store)."""
     import signal
     import subprocess
     import sys

@@ -10,7 +10,7 @@ from bench.perturb import FAMILIES, Perturbation, perturbed_task
 from bench import transfer as tr
 from tasks import make_task
 from tasks.demo import load_demo
-from tasks.expert import expert_policy
+from bench.expert import expert_policy
 
 CFG = EvalConfig(num_episodes=8)
 
@@ -250,3 +250,38 @@ def test_dynamics_effect_is_zero_at_zero_and_large_for_a_real_change(pm):
     task = pm[0]
     assert dynamics_effect(task, Perturbation("mass", 0.0)) == 0.0
     assert dynamics_effect(task, Perturbation("mass", 0.3)) > 10 * EFFECT_TOL
+
+
+def test_references_fall_back_to_the_user_cache_where_the_package_folder_is_read_only(
+        tmp_path, monkeypatch):
+    """An installed wheel's reference folder may be read-only: a new entry then goes to the
+    user's cache and is read back on top of the packaged ones; the packaged file is
+    untouched. Where the folder is writable, entries are stored beside the packaged ones.
+    (Read-only is simulated: file modes do not bind root.)"""
+    import os
+    import bench.transfer as tr
+    pkg, user = tmp_path / "pkg", tmp_path / "user"
+    pkg.mkdir()
+    (pkg / "hopper.json").write_text('{"sha": {"mass:0.3": {"expert": 1.0, "random": 0.0}}}')
+    monkeypatch.setattr(tr, "REF_DIR", str(pkg))
+    monkeypatch.setattr(tr, "USER_REF_DIR", str(user))
+    real_write, real_access = tr.write_json_atomic, os.access
+    read_only = [True]
+
+    def write(path, obj):
+        if read_only[0] and path.startswith(str(pkg)):
+            raise PermissionError(13, "Permission denied", path)
+        return real_write(path, obj)
+    monkeypatch.setattr(tr, "write_json_atomic", write)
+    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if read_only[0] and
+                        str(p).startswith(str(pkg)) else real_access(p, mode, **k))
+    path = tr.store_reference("hopper.json", "sha", {"expert": 2.0, "random": 0.5},
+                              subkey="friction:-0.5")
+    assert path == str(user / "hopper.json")
+    assert tr.load_references("hopper.json")["sha"] == {
+        "mass:0.3": {"expert": 1.0, "random": 0.0}, "friction:-0.5": {"expert": 2.0, "random": 0.5}}
+    assert "friction" not in (pkg / "hopper.json").read_text()
+    read_only[0] = False  # a writable package folder (a checkout): stored there, cache unread
+    assert tr.store_reference("hopper.json", "sha2", {"expert": 3.0, "random": 1.0},
+                              subkey="mass:0.3") == str(pkg / "hopper.json")
+    assert "friction:-0.5" not in tr.load_references("hopper.json")["sha"]

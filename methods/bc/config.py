@@ -21,7 +21,7 @@ class BCConfig:
     The original used 1e-3; with one demo that amplifies features the demo barely varies, and
     too high a floor leaves them unreadable. Measured with the frozen normalizer (bc v2),
     3 seeds, `ildbench sweep --methods bc --tasks T --seeds 3 --budget 60s --set
-    obs_std_min=F --store results/bcfloor/runs` (nominal normalized score):
+    obs_std_min=F --store results/tuning/bc_normalizer_floor/runs` (nominal normalized score):
     inverted_pendulum 0.1: 0.725 0.838 0.968 | 0.3: 1.000 1.000 1.000 | 1.0: 0.787 0.929 0.823;
     reacher 0.3: 0.843 0.722 0.822 | 1.0: 0.878 0.766 0.816; hopper 0.3: 1.004 0.922 1.007
     | 1.0: 0.882 0.977 0.772. (bc v1, whose normalizer Adam moved, scored 1.00 on inverted_pendulum

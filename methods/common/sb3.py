@@ -350,7 +350,7 @@ def learn_within_budget(model, ctx, make_policy: Callable[[], Policy], report_ev
 
 
 def usable_cpus() -> int:
-    from bench.runner import resources
+    from bench.machine import resources
     return resources()["cpus"]
 
 

@@ -41,7 +41,7 @@ class PWILConfig:
     (256, 256) ones, which on one CPU core caps the learner near 35 updates/s (so 200k env
     steps at the original's update-to-data ratio would take over 1.5 hours per run): the
     budgets here are 10-100x below the original's 1M steps, so the learner is sized for them
-    (`python -m methods.common.sb3_benchmark` measures the learner's rate)."""
+    (`python -m benchmarks.sb3_speed` measures the learner's rate)."""
     learning_rate: float = 3e-4
     """Adam for actor and critic: TD3's 3e-4. The original's 1e-4 went with D4PG and 1M env
     steps; at 50k-200k steps the smaller rate leaves the critic far from converged."""
