@@ -3,8 +3,8 @@
 XLA's CPU runtime mallocs each call's working memory (for an ILD update, the residuals its
 backward pass reads: 191 MiB on hopper at B = 32) and frees it when the call ends. glibc
 serves an allocation that large with a fresh anonymous mapping and unmaps it on free, so
-every call pays one page fault per 4 KiB page it touches (49k faults, ~0.1 s of kernel time
-in a ~0.45 s hopper update; ). With the tunable
+every call pays one page fault per 4 KiB page it touches (tens of thousands per hopper
+update, a fifth of its time in the kernel). With the tunable
 `glibc.malloc.hugetlb=1` (glibc >= 2.35) malloc advises the kernel to back its mappings with
 2 MiB transparent huge pages, which cuts the faults 30-100-fold (pointmass, hopper) where
 the kernel's transparent huge pages are `madvise` or `always`. It changes where

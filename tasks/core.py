@@ -575,7 +575,7 @@ def with_small_dots(task: Task) -> Task:
     `with_substep_remat` copies) whose physics step computes its small matrix products as
     multiply-and-sum (`tasks.small_dots.small_dots_as_sums`): the same function and gradient
     to float32 round-off (tested), which XLA's CPU backend runs faster where a step is made
-    of tiny products (swimmer's generalized step; ). The
+    of tiny products (swimmer's generalized step). The
     registry's cached task is left as it is. Errors for a task with no brax physics step.
     Apply it after `with_substep_remat` (which builds its step from brax's substep and refuses
     a copy that has its own): the checkpointed substeps are then rewritten inside."""

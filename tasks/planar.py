@@ -726,9 +726,8 @@ def control_step(sc: Scene, x_i, xd_i, act: jax.Array, n_frames: int):
     planar scene (`planar_refusal` None).
 
     The substeps are unrolled, each from and to arrays: as a scan, XLA's CPU runtime ran
-    the step's VJP 2.6x slower at B = 32 (1.68 ms against 0.64 ms; the forward 0.08 ms
-    either way), and as one graph of scalars from input to output (no arrays between
-    substeps) it compiled ILD's update in 6 minutes instead of one. Each substep also passes
+    the step's VJP more than twice as slowly, and as one graph of scalars from input to
+    output (no arrays between substeps) ILD's update took minutes to compile. Each substep also passes
     through arrays after `integrate` (`_through_arrays`)."""
     dtype = x_i.pos.dtype
     tau = joint_torques(sc, act)

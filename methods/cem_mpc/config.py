@@ -29,8 +29,8 @@ class CEMConfig:
     small_dots: bool = False
     """Plan on a copy of the physics whose small matrix products are computed as
     multiply-and-sum (`tasks.core.with_small_dots`; brax tasks only): the same function to
-    float32 round-off, its forward ~3x faster on swimmer's generalized step on the CPU
-   ; the test episodes still run the task itself. Off by
+    float32 round-off, its forward faster on swimmer's generalized step on the CPU; the
+    test episodes still run the task itself. Off by
     default: every recorded CEM-MPC cell ran without it."""
 
     def __post_init__(self):

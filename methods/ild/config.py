@@ -308,8 +308,8 @@ class ILDConfig:
 PRESETS = {
     # The paper's scale: for an accelerator (one update is ~11x the cpu preset's work).
     "paper": {},
-    # Sized so updates are frequent on 2 CPU cores: ~0.7 s per update of B=32 on hopper
-    # (spring), so a 10-minute budget buys several hundred updates.
+    # Sized so updates are frequent on one CPU core: a 10-minute budget buys several
+    # hundred updates on hopper.
     "cpu": {"num_envs": 32},
 }
 
@@ -375,8 +375,8 @@ _merge_overrides(SPATIAL_LINKS_TASKS, spatial_links=True)
 # (`hand_adjoint` off, which takes its pieces along: `MethodSpec.requires`; and
 # `spatial_links` off). The hand-written VJPs cut the number of XLA operations, which is
 # what an update costs on one CPU core; on one H200 they cost ant and humanoid time (ant at
-# B = 360: 0.52-0.54 s per update with them against 0.41-0.47 s without; humanoid 0.61 s
-# against 0.56 s; `benchmarks/gpu_speed_recipe.sh`). The gradient is the same either way, so
+# B = 360 about 1.2x slower per update with them, humanoid about 1.1x;
+# `benchmarks/gpu_speed_recipe.sh`). The gradient is the same either way, so
 # this is a speed choice; `--set hand_adjoint=true` on a GPU brings the pieces back.
 PLATFORM_OVERRIDES: dict[str, dict[str, dict]] = {
     "gpu": {"ant": {"hand_adjoint": False, "spatial_links": False},

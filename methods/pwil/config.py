@@ -38,8 +38,8 @@ class PWILConfig:
     critic_hidden: tuple[int, ...] = (256, 256)
     """TD3's twin critics. D4PG's critic torso is (512, 512, 256) before a 201-atom head;
     twin (512, 512, 256) critics at batch 256 make an update about 4.5x the arithmetic of
-    (256, 256) ones, which on one CPU core caps the learner near 35 updates/s (so 200k env
-    steps at the original's update-to-data ratio would take over 1.5 hours per run): the
+    (256, 256) ones, which on one CPU core would make 200k env steps at the original's
+    update-to-data ratio take over 1.5 hours per run: the
     budgets here are 10-100x below the original's 1M steps, so the learner is sized for them
     (`python -m benchmarks.sb3_speed` measures the learner's rate)."""
     learning_rate: float = 3e-4

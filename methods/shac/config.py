@@ -40,8 +40,8 @@ class SHACConfig:
     small_dots: bool = False
     """Train through the physics step with its small matrix products computed as
     multiply-and-sum (`tasks.core.with_small_dots`; brax tasks only): the same function and
-    gradient to float32 round-off, ~2-3x faster on swimmer's generalized step on the CPU
-   , so SHAC can run on the physics ILD's `small_dots` runs
+    gradient to float32 round-off, faster on swimmer's generalized step on the CPU, so
+    SHAC can run on the physics ILD's `small_dots` runs
     on. Off by default: every recorded SHAC cell ran without it."""
 
     def __post_init__(self):
