@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import tasks  # noqa: F401  (before brax: tasks/__init__.py keeps brax's import noise quiet)
 from brax.envs.base import State, Wrapper
 
 from bench.api import InformationError, Uses

@@ -67,6 +67,11 @@ class Budget:
         return " / ".join(parts)
 
 
+def format_steps(n: float) -> str:
+    """Env steps as the tables and progress lines print them: 950, 51k, 20.48M."""
+    return f"{n / 1e6:.2f}M" if n >= 1e6 else (f"{n / 1e3:.0f}k" if n >= 1e4 else f"{n:.0f}")
+
+
 def parse_seconds(text: str) -> float:
     """'300', '300s', '10m', '1.5h' -> seconds."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([smh]?)\s*", str(text))

@@ -190,9 +190,10 @@ def starved_note(store_dir: str, methods, tasks) -> str:
             continue
         steps = [r.get("env_steps") or 0 for r in recs
                  if r.get("method") == m.name and r.get("task") in tasks]
-        if steps and statistics.median(steps) < m.min_env_steps:
-            lines.append(f"  {m.name}: about {statistics.median(steps):,.0f} env steps per cell "
-                         f"here; its paper trains for {m.min_env_steps:,}")
+        median = statistics.median(steps) if steps else None
+        if median is not None and median < m.min_env_steps:
+            lines.append(f"  {m.name}: about {median:,.0f} env steps per cell here; its paper "
+                         f"trains for {m.min_env_steps:,}")
     if not lines:
         return ""
     return ("note: these methods are starved at quick's budget (marked in the table); their "

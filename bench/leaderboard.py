@@ -25,7 +25,7 @@ import pandas as pd
 
 from bench import curves
 from bench.api import Uses
-from bench.budget import Budget
+from bench.budget import Budget, format_steps
 from bench.paper import paper_return
 from bench.stats import bootstrap_ci
 from bench.store import Store
@@ -173,10 +173,7 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
 
 
 def _count(v) -> str:
-    if pd.isna(v):
-        return "-"
-    v = float(v)
-    return f"{v / 1e6:.2f}M" if v >= 1e6 else (f"{v / 1e3:.0f}k" if v >= 1e4 else f"{v:.0f}")
+    return "-" if pd.isna(v) else format_steps(float(v))
 
 
 def to_markdown(board: pd.DataFrame) -> str:

@@ -39,6 +39,7 @@ import inspect
 import jax
 import jax.numpy as jnp
 import numpy as np
+import tasks  # noqa: F401  (before brax: tasks/__init__.py keeps brax's import noise quiet)
 from brax.envs.base import State, Wrapper
 
 from tasks.core import Task, build_env

@@ -25,7 +25,7 @@ from bench.access import DemoView, TaskView
 from bench.api import Diverged, MethodSpec, Policy, TrainResult
 from bench.budget import Budget, Clock
 from bench.evaluator import EvalConfig, Evaluator
-from bench.machine import cpu_model, git_revision, machine, resources, speed_settings  # noqa: F401
+from bench.machine import git_revision, machine, resources
 from bench.plugins import build_config, get_method
 from bench.store import Store
 from bench.transfer import default_summary

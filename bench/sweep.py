@@ -46,7 +46,7 @@ import tempfile
 import time
 from typing import Callable, Sequence
 
-from bench.budget import Budget
+from bench.budget import Budget, format_steps
 from bench.runner import Prepared, RunRequest, execute, prepare
 from bench.store import Store
 
@@ -125,15 +125,6 @@ class Progress:
     def close(self):
         if self._bar is not None:
             self._bar.stop()
-
-
-def format_steps(n: int) -> str:
-    """Env steps as the tables print them: 950, 51k, 20.48M."""
-    if n >= 1_000_000:
-        return f"{n / 1e6:.2f}M"
-    if n >= 10_000:
-        return f"{n / 1e3:.0f}k"
-    return str(n)
 
 
 def _outcome(p: Prepared, rec: dict, skipped: bool, wall: float) -> Outcome:
@@ -248,6 +239,16 @@ def warmup_request(r: RunRequest) -> RunRequest:
         eval=dataclasses.replace(r.eval, transfer=False, robustness=False))
 
 
+def warmup_groups(pending: Sequence[Prepared]) -> list[Prepared]:
+    """The first cell of each compile group among `pending` whose result compile time can
+    change (`needs_warmup`): the cells an executor warms up before running any."""
+    groups: dict[str, Prepared] = {}
+    for p in pending:
+        if needs_warmup(p):
+            groups.setdefault(compile_group(p), p)
+    return list(groups.values())
+
+
 def warm_up(p: Prepared, jax_cache: str | None, log: Callable[[str], None],
             cpu: int | None = None) -> None:
     """Run the warm-up cell in a spawned process (so only the persistent cache carries
@@ -290,8 +291,8 @@ def run_parallel(prepared: Sequence[Prepared], store: Store, workers: int,
     free: queue.Queue = queue.Queue()
     for c in cpus:
         free.put(c)
-    pending = [p for p in prepared if force or store.finished(p.run_id) is None]
-    pending_ids = {id(p) for p in pending}
+    finished = {id(p): None if force else store.finished(p.run_id) for p in prepared}
+    pending = [p for p in prepared if finished[id(p)] is None]
     progress = None
 
     def on_a_cpu(fn, *args):
@@ -305,17 +306,13 @@ def run_parallel(prepared: Sequence[Prepared], store: Store, workers: int,
     try:
         with ThreadPoolExecutor(max_workers=workers) as pool:
             if warm:
-                groups: dict[str, Prepared] = {}
-                for p in pending:
-                    if needs_warmup(p):
-                        groups.setdefault(compile_group(p), p)
                 for f in as_completed([pool.submit(on_a_cpu, warm_up, p, jax_cache, log)
-                                       for p in groups.values()]):
+                                       for p in warmup_groups(pending)]):
                     f.result()
             progress = Progress(len(prepared), len(pending), log, workers=workers)
             for p in prepared:
-                if id(p) not in pending_ids:
-                    o = _outcome(p, store.finished(p.run_id), True, 0.0)
+                if finished[id(p)] is not None:
+                    o = _outcome(p, finished[id(p)], True, 0.0)
                     progress.update(o)
                     out.append(o)
 
@@ -404,17 +401,15 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
     root = os.path.abspath(store.root)
     cell = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run, max_retries=0)(_ray_cell)
     if warm:
-        groups: dict[str, Prepared] = {}
-        for p in prepared:
-            if (force or store.finished(p.run_id) is None) and needs_warmup(p):
-                groups.setdefault(compile_group(p), p)
+        groups = warmup_groups([p for p in prepared
+                                if force or store.finished(p.run_id) is None])
         if groups:
             os.makedirs(root, exist_ok=True)
             tmp = tempfile.mkdtemp(prefix=".warmup-", dir=root)
             t0 = time.perf_counter()
             try:
                 refs = [cell.remote(warmup_request(p.request), tmp, True, jax_cache,
-                                    cpus_per_run) for p in groups.values()]
+                                    cpus_per_run) for p in groups]
                 for ref in refs:
                     try:
                         ray.get(ref)

@@ -53,7 +53,7 @@ import jax
 
 from bench.malloc import reexec_with_hugepages
 from bench.plugins import ConfigError
-from bench.runner import speed_settings
+from bench.machine import speed_settings
 from benchmarks.ild_speed import apg_epochs, reward_gradient_norm, speed_setup, task_config
 from methods.ild.config import ILDConfig
 from methods.ild.train import (initial_state, make_chunk, make_rollout_loss, make_update,

@@ -577,7 +577,7 @@ def main(argv=None):
     rows = run(a.task, a.batch, a.repeats, not a.no_apg, a.chunk, only, overrides)
     if a.out:
         from bench.report import append_csv
-        from bench.runner import speed_settings
+        from bench.machine import speed_settings
         settings = speed_settings()  # XLA's code generator, glibc's huge pages: speed
         append_csv([{**r, **settings} for r in rows], a.out)
 

@@ -269,7 +269,7 @@ def test_cpu_model_names_the_first_processor_and_records_carry_it(toy, store):
     """Speed ratios move with the CPU model (update / forward 2.91-2.95x on one, 3.15-3.21x
     on another for the same code), so records and speed CSVs name it;
     `platform.processor()` is empty on Linux."""
-    from bench.runner import cpu_model
+    from bench.machine import cpu_model
     text = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
             "model name\t: AMD EPYC\n\nprocessor\t: 1\ncpu family\t: 6\nmodel\t\t: 167\n"
             "model name\t: Other\n")

@@ -174,7 +174,8 @@ def test_progress_lines_print_scores_to_three_decimals_and_the_env_steps():
     p = Progress(total=1, to_run=1, log=lines.append)
     p.update(Outcome("a", "dac", "hopper", 0, "ok", 0.9962916401272208, False, 1.0, 51216))
     assert "normalized 0.996, 51k env steps" in lines[0]
-    assert sweep.format_steps(950) == "950" and sweep.format_steps(20_480_000) == "20.48M"
+    from bench.budget import format_steps
+    assert format_steps(950) == "950" and format_steps(20_480_000) == "20.48M"
 
 
 def test_parallel_cells_run_one_per_cpu_and_skip_finished_ones(tmp_path):

@@ -11,6 +11,7 @@ from typing import Sequence
 import jax
 import jax.numpy as jnp
 import optax
+import tasks  # noqa: F401  (before brax: tasks/__init__.py keeps brax's import noise quiet)
 from brax.training import distribution, networks
 from flax import linen
 
