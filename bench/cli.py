@@ -206,9 +206,10 @@ def cmd_leaderboard(args):
     from bench.store import Store
     paths = write_report(Store(args.store), args.out)
     print(open(paths[0]).read())  # leaderboard.md
-    agg = os.path.join(args.out, "aggregates.md")
-    if os.path.exists(agg):
-        print(open(agg).read())
+    for name in ("sample_matched.md", "aggregates.md"):
+        path = os.path.join(args.out, name)
+        if path in paths:
+            print(open(path).read())
     print("written: " + ", ".join(paths))
     return 0
 

@@ -12,7 +12,8 @@ Every cell says what it did with its budget: the median env steps and learner up
 runs. Each task carries its floors (bench/floors.py: all-zero actions, and the demo's
 actions replayed open loop) as rows of their own; a cell that does not beat `zero_action`
 is marked, as is a cell whose median env steps are below its method's `min_env_steps`
-(starved: its paper trains for far longer), and a task whose `zero_action` floor scores
+(starved: its paper trains for far longer), as is a cell made by an older version of its
+method than the registered one (stale: a sweep of the store would re-run it), and a task whose `zero_action` floor scores
 above 0.8 is named weakly discriminative under the table.
 """
 from __future__ import annotations
@@ -35,8 +36,8 @@ COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "transfer_std", "auc_mean", "t50_mean", "t50_reached", "t90_mean", "t90_reached",
            "return_mean", "paper_return", "paper_expert", "diverged", "failed",
            "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
-           "below_zero_action"]
-STARVED, NOT_ABOVE_ZERO = "†", "‡"
+           "below_zero_action", "version", "stale"]
+STARVED, NOT_ABOVE_ZERO, STALE = "†", "‡", "§"
 
 
 def _transfer(record: dict) -> float | None:
@@ -77,11 +78,14 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "t50": curves.time_to(curve, 0.5), "t90": curves.time_to(curve, 0.9),
                      "curve": curve, "horizon": horizon, "started": r.get("started"),
                      "env_steps": r.get("env_steps"),
+                     "budget_steps": (r.get("budget") or {}).get("env_steps"),
+                     "version": str(r.get("method_version")),
                      "updates": (r.get("train_metrics") or {}).get("train/updates")})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
-                                       "curve", "horizon", "started", "env_steps", "updates"])
+                                       "curve", "horizon", "started", "env_steps", "budget_steps",
+                                       "version", "updates"])
 
 
 def _median(col: pd.Series) -> float:
@@ -93,6 +97,12 @@ def _min_env_steps(method: str) -> int | None:
     from bench.plugins import all_methods
     spec = all_methods().get(method)
     return None if spec is None else spec.min_env_steps
+
+
+def _registered_version(method: str) -> str | None:
+    from bench.plugins import all_methods
+    spec = all_methods().get(method)
+    return None if spec is None else str(spec.version)
 
 
 def task_floors(tasks, compute: bool = True) -> dict[str, dict]:
@@ -151,10 +161,13 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
                     "failed": int((g.status == "failed").sum()),
                     "env_steps_median": _median(scored.env_steps),
                     "updates_median": _median(scored.updates),
-                    "min_env_steps": _min_env_steps(method), "floor": False})
+                    "min_env_steps": _min_env_steps(method), "floor": False,
+                    "version": g.version.iloc[0]})
     for row in out:
         need, steps = row["min_env_steps"], row["env_steps_median"]
         row["starved"] = bool(need is not None and pd.notna(steps) and steps < need)
+        current = _registered_version(row["method"])
+        row["stale"] = bool(current is not None and row["version"] != current)
         zero = floors.get(row["task"], {}).get("zero_action")
         row["below_zero_action"] = bool(zero is not None and pd.notna(row["normalized_mean"])
                                         and row["normalized_mean"] <= zero["normalized"])
@@ -166,6 +179,7 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
                         "reference": False, "budget": "-", "seeds": 0,
                         "normalized_mean": v["normalized"], "return_mean": v["return"],
                         "floor": True, "starved": False, "below_zero_action": False,
+                        "stale": False,
                         "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
                         "paper_return": float("nan"), "paper_expert": float("nan")})
     return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
@@ -198,10 +212,11 @@ def to_markdown(board: pd.DataFrame) -> str:
     show["t50%"] = [_tt(m, n, k) for m, n, k in zip(show.t50_mean, show.t50_reached, show.seeds)]
     show["t90%"] = [_tt(m, n, k) for m, n, k in zip(show.t90_mean, show.t90_reached, show.seeds)]
     show["method"] = [m + (" (ref)" if r else "") + (STARVED if st else "")
-                      + (NOT_ABOVE_ZERO if bz else "")
-                      for m, r, st, bz in zip(show.method, show.reference,
-                                              show.starved.fillna(False),
-                                              show.below_zero_action.fillna(False))]
+                      + (NOT_ABOVE_ZERO if bz else "") + (STALE if old else "")
+                      for m, r, st, bz, old in zip(show.method, show.reference,
+                                                   show.starved.fillna(False),
+                                                   show.below_zero_action.fillna(False),
+                                                   show.stale.fillna(False))]
     show["env steps"] = show.env_steps_median.map(_count)
     show["updates"] = show.updates_median.map(_count)
     show.loc[floor, "method"] = [f"_{m} (floor)_" for m in show.method[floor]]
@@ -227,6 +242,13 @@ def notes(board: pd.DataFrame) -> str:
         lines.append(f"{STARVED} starved: the cell's median env steps are below what its "
                      f"method's paper trains for ({', '.join(need)}); its score says how far "
                      "the method gets on this budget, not how far it can get.")
+    stale = board[board.stale.fillna(False).astype(bool)]
+    if len(stale):
+        old = sorted({f"{m} version {v} (now {_registered_version(m)})"
+                      for m, v in zip(stale.method, stale.version)})
+        lines.append(f"{STALE} stale: made by an older version of the method than the "
+                     f"registered one ({', '.join(old)}); a sweep of this store would re-run "
+                     "the cell.")
     if board.below_zero_action.fillna(False).astype(bool).any():
         lines.append(f"{NOT_ABOVE_ZERO} not above the zero_action floor: all-zero actions "
                      "score as high; the method learned nothing useful on that task.")

@@ -37,3 +37,88 @@ TABLE3: dict[str, dict[str, float]] = {
 
 def paper_return(task: str, method: str) -> float | None:
     return TABLE2.get(task, {}).get(method)
+
+
+COMPARED = ("ild", "dac", "pwil")
+SAME_WITHIN = 0.01
+"""Two methods tie on a task when their scores differ by at most this fraction of the
+expert's: 1% of the paper's expert return in Table 2, 0.01 normalized in ours."""
+
+
+def paper_ratio(task: str, method: str) -> float | None:
+    """The paper's Table 2 return of `method` over its expert's return on `task`."""
+    ret, expert = paper_return(task, method), paper_return(task, "expert")
+    return None if ret is None or not expert else ret / expert
+
+
+def ordering(scores: dict[str, float], tie: float) -> list[list[str]]:
+    """Methods from best to worst, as groups of methods that tie (a chain of neighbours each
+    within `tie` of the next forms one group)."""
+    ranked = sorted(scores, key=lambda m: (-scores[m], m))
+    groups: list[list[str]] = []
+    for m in ranked:
+        if groups and scores[groups[-1][-1]] - scores[m] <= tie:
+            groups[-1].append(m)
+        else:
+            groups.append([m])
+    return groups
+
+
+def _relations(groups: list[list[str]]) -> dict[tuple[str, str], str]:
+    rank = {m: i for i, g in enumerate(groups) for m in g}
+    return {(a, b): ">" if rank[a] < rank[b] else ("=" if rank[a] == rank[b] else "<")
+            for a in rank for b in rank if a < b}
+
+
+def _describe(groups: list[list[str]]) -> str:
+    return " > ".join(" = ".join(g) for g in groups)
+
+
+def comparison(scores: dict[str, dict[str, float]]) -> list[dict]:
+    """Rows of the paper comparison from our mean normalized scores {task: {method: score}}:
+    per task of Table 2, our score and the paper's return ratio for each compared method we
+    have, both orderings (higher return is better; ties within SAME_WITHIN of the expert),
+    and how many method pairs the two orderings agree on. The paper's returns are ordered,
+    not its ratios, so reacher's negative returns order the right way round."""
+    rows = []
+    for task in sorted(scores):
+        if task not in TABLE2:
+            continue
+        ours = {m: v for m, v in scores[task].items() if m in COMPARED and v == v}
+        if len(ours) < 2:
+            continue
+        expert = abs(TABLE2[task]["expert"])
+        paper = {m: TABLE2[task][m] / expert for m in ours}  # same order as the returns
+        mine, theirs = ordering(ours, SAME_WITHIN), ordering(paper, SAME_WITHIN)
+        rel_ours, rel_paper = _relations(mine), _relations(theirs)
+        agree = sum(rel_ours[k] == rel_paper[k] for k in rel_ours)
+        row = {"task": task}
+        for m in COMPARED:
+            row[f"ours_{m}"] = ours.get(m)
+            row[f"paper_{m}"] = paper_ratio(task, m) if m in ours else None
+        row.update({"ours_order": _describe(mine), "paper_order": _describe(theirs),
+                    "pairs_agreeing": f"{agree}/{len(rel_ours)}",
+                    "agrees": "yes" if agree == len(rel_ours) else "no"})
+        rows.append(row)
+    return rows
+
+
+def comparison_markdown(tables: dict[str, list[dict]]) -> str:
+    """One table per budget ({budget label: comparison rows})."""
+    import pandas as pd
+    out = ["# Beside the paper (Table 2, one demonstration)", "",
+           "`ours_M`: our mean normalized score (1 = expert, 0 = random policy). `paper_M`: "
+           "the paper's return over its expert's return. The orderings rank by score (ours) "
+           "and by return (the paper's); two methods tie within 1% of the expert. "
+           "`pairs_agreeing`: method pairs ordered the same way in both. On reacher the "
+           "returns are negative, so a ratio below 1 there is better than the expert.", ""]
+    if not any(tables.values()):
+        out.append("_no task with two or more of ILD, DAC and PWIL scored_")
+    for label, rows in tables.items():
+        if not rows:
+            continue
+        df = pd.DataFrame(rows)
+        agree = int((df.agrees == "yes").sum())
+        out += [f"## {label}", "", df.to_markdown(index=False, floatfmt=".3f"), "",
+                f"Orderings agreeing on {agree} of {len(df)} tasks.", ""]
+    return "\n".join(out) + "\n"

@@ -6,6 +6,12 @@
                             final nominal score and for the transfer score
     curves_<task>.png       normalized score vs training seconds (mean, 95% CI band)
     curves_aggregate.png    mean over tasks vs fraction of the budget
+    steps_<task>.png        normalized score vs env steps
+    sample_matched.md/.csv  every learning method at equal env-step budgets
+                            (bench.sample_matched; from step-budgeted runs)
+    paper_comparison.md/.csv
+                            our scores beside the paper's Table 2, one table per budget
+                            (bench.paper.comparison)
 
 Aggregates use one variant per (method, task): the one with the most scored seeds, and
 among equals the one with the newest run (a store may hold older or differently-configured
@@ -216,11 +222,65 @@ def _finish(fig, ax, xlabel: str, title: str, out_dir: str, name: str) -> str:
     return save_figure(fig, out_dir, name)
 
 
+def _best_rows(board: pd.DataFrame) -> pd.DataFrame:
+    """The scored imitation rows of a board, one per (budget, task, method): the variant with
+    the most seeds."""
+    rows = board[~board.floor.fillna(False).astype(bool) & ~board.reference.astype(bool)
+                 & (board.seeds > 0)]
+    return (rows.sort_values(["seeds", "variant"], ascending=[False, True], kind="stable")
+            .drop_duplicates(["budget", "task", "method"]))
+
+
+def paper_tables(board: pd.DataFrame, matched: pd.DataFrame) -> dict[str, list[dict]]:
+    """{budget label: bench.paper.comparison rows}: one per wall-clock budget of the board
+    and one per sample-matched env-step budget (a step-only budget of the board is read
+    there, at its own and the other step budgets)."""
+    from bench.budget import format_steps
+    from bench.paper import comparison
+    tables = {}
+    for budget, part in _best_rows(board).groupby("budget"):
+        if budget.endswith("env steps") and "/" not in budget:
+            continue
+        scores: dict[str, dict[str, float]] = {}
+        for t, m, v in zip(part.task, part.method, part.normalized_mean):
+            scores.setdefault(t, {})[m] = float(v)
+        tables[f"{budget} of training (wall-clock)"] = comparison(scores)
+    if not matched.empty:
+        best = (matched.sort_values(["seeds", "variant"], ascending=[False, True],
+                                    kind="stable")
+                .drop_duplicates(["env_steps_budget", "task", "method"]))
+        for budget, part in best.groupby("env_steps_budget"):
+            scores = {}
+            for t, m, v in zip(part.task, part.method, part.normalized_mean):
+                scores.setdefault(t, {})[m] = float(v)
+            tables[f"{format_steps(budget)} env steps (sample-matched)"] = comparison(scores)
+    return tables
+
+
 def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
     """Every report file from one read of the store; leaderboard.md comes first."""
+    from bench import sample_matched
+    from bench.paper import comparison_markdown
     frame = lb.records_frame(store)
-    paths = list(lb.write(lb.board(frame, lb.task_floors(frame.task)), out_dir))
+    floors = lb.task_floors(frame.task)
+    board = lb.board(frame, floors)
+    paths = list(lb.write(board, out_dir))
     if not frame.empty:
+        matched = sample_matched.table(frame)
+        if not matched.empty:
+            p = os.path.join(out_dir, "sample_matched.md")
+            with open(p, "w") as f:
+                f.write(sample_matched.to_markdown(matched, floors))
+            matched.to_csv(os.path.join(out_dir, "sample_matched.csv"), index=False)
+            paths += [p, os.path.join(out_dir, "sample_matched.csv")]
+        tables = paper_tables(board, matched)
+        if any(tables.values()):
+            p = os.path.join(out_dir, "paper_comparison.md")
+            with open(p, "w") as f:
+                f.write(comparison_markdown(tables))
+            pd.DataFrame([{"budget": k, **r} for k, rows in tables.items() for r in rows]
+                         ).to_csv(os.path.join(out_dir, "paper_comparison.csv"), index=False)
+            paths += [p, os.path.join(out_dir, "paper_comparison.csv")]
         agg, imp, notes = aggregates(frame, reps=reps)
         p = os.path.join(out_dir, "aggregates.md")
         with open(p, "w") as f:

@@ -257,3 +257,16 @@ def test_curves_read_against_env_steps_and_plot_on_a_step_axis(store, tmp_path):
     paths = step_curve_plots(lb.records_frame(store), str(tmp_path))
     assert [p.split("/")[-1] for p in paths] == ["steps_pointmass.png"]
     assert (tmp_path / "steps_pointmass.png").stat().st_size > 1000
+
+
+def test_a_cell_made_by_an_older_method_version_is_marked_stale(store):
+    """The registered DAC is version 2: a version-1 cell carries §, a note names both
+    versions, and a version-2 cell is not marked."""
+    for seed in range(2):
+        _full(store, f"old{seed}", "dac", "hopper", seed, 0.5, [_pt(5, 0.5)])
+        store.write({**store.get(f"old{seed}"), "run_id": f"new{seed}", "method_version": "2",
+                     "final_normalized": 0.8})
+    board = lb.board(lb.records_frame(store))
+    assert dict(zip(board.version, board.stale)) == {"1": True, "2": False}
+    md = lb.to_markdown(board)
+    assert md.count("dac§") == 1 and "dac version 1 (now 2)" in md
