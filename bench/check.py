@@ -1,13 +1,16 @@
-"""CI regression gate: a canary suite with env-step budgets, compared with a committed reference.
+"""CI regression gate: a canary suite with env-step budgets, compared with a reference.
 
-The canary cells use env-step budgets (not wall-clock), fixed seeds and fixed evaluation
+A suite is a TOML file (bench/data/canary_suite.toml is ildbench's own; a plugin author
+writes one for their method): per canary the method (any registered one, a plugin's
+included), the task, an env-step budget, config overrides, seeds and a tolerance. The
+canary cells use env-step budgets (not wall-clock), fixed seeds and fixed evaluation
 episodes, so on a CPU they are deterministic up to floating-point differences between
-machines. `ildbench check` runs them into a fresh store, averages each (method, task) over
-its seeds and compares with bench/data/canary_reference.json (package data):
+machines. `ildbench check` runs them into a fresh store, averages each canary over its seeds
+and compares with the reference file:
 
-    fail if  mean_now < mean_ref - tol,   tol = max(abs_tol, z * std_ref / sqrt(n))
+    fail if  mean_now < mean_ref - tol,   tol = max(tolerance, z * std_ref / sqrt(n))
 
-abs_tol covers cross-machine float drift; the statistical term widens the band where the
+`tolerance` covers cross-machine float drift; the statistical term widens the band where the
 reference seeds disagree (z = 3: a ~0.1% one-sided false alarm rate under a normal model).
 An improvement never fails; `ildbench check --update` rewrites the reference after an
 intended change (commit it with the change that explains it).
@@ -18,7 +21,9 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tempfile
+import tomllib
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -28,12 +33,17 @@ from bench.evaluator import EvalConfig
 from bench.runner import RunRequest, prepare
 from bench.store import Store, write_json_atomic
 
-REFERENCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data",
-                         "canary_reference.json")
+_DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
+SUITE_FILE = os.path.join(_DATA, "canary_suite.toml")
+REFERENCE = os.path.join(_DATA, "canary_reference.json")
 ABS_TOL = 0.05
 Z = 3.0
 SEEDS = (0, 1)
-EVAL = EvalConfig(num_episodes=16)
+EVAL_EPISODES = 16
+
+
+class SuiteError(ValueError):
+    """A malformed canary suite file; the message names the file, the line and the fix."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,59 +52,158 @@ class Canary:
     task: str
     env_steps: int
     overrides: tuple[tuple[str, object], ...] = ()
+    seeds: tuple[int, ...] = SEEDS
+    eval_episodes: int = EVAL_EPISODES
+    tolerance: float = ABS_TOL
+    name: str | None = None
 
     @property
     def key(self) -> str:
-        return f"{self.method}/{self.task}"
+        return self.name or f"{self.method}/{self.task}"
 
     @property
     def definition(self) -> dict:
         """What the reference's numbers were measured with (stored beside them), as JSON
         reads it back (a tuple-valued override compares equal to the list it is stored as)."""
         return json.loads(json.dumps({"env_steps": self.env_steps,
-                                      "overrides": dict(self.overrides)}))
+                                      "overrides": dict(self.overrides),
+                                      "seeds": list(self.seeds),
+                                      "eval_episodes": self.eval_episodes}))
 
 
-# pointmass (the test task) and inverted_pendulum (the cheapest Brax task).
-SUITE: tuple[Canary, ...] = (
-    Canary("bc", "pointmass", 1, (("updates", 300),)),
-    # ILD from scratch (no BC warm start): the score comes from the physics gradients alone.
-    Canary("ild", "pointmass", 30 * 8 * 128, (("num_envs", 8), ("hidden", "(64, 64)"),
-                                              ("bc_updates", 0), ("updates", 30))),
-    # DAC stands for the SB3 path (vector env, observation normalizer, replay, torch policy
-    # snapshot). PWIL and the references are left to the leaderboard. One torch thread:
-    # torch's CPU kernels round differently at another thread count, so the canary would
-    # otherwise depend on the CI machine's cores. 10240 steps: DAC reaches pointmass's expert
-    # by ~8k steps and stays there to ~12k (seeds 0 and 1: 0.98-1.03 at 8k-12k); past that its
-    # discriminator overtakes the matched policy and the score drifts down (0.78 and 0.85 at
-    # 16k), a slope on which a rounding change moves a seed far more than on the plateau.
-    Canary("dac", "pointmass", 10240, (("torch_threads", 1),)),
-    Canary("bc", "inverted_pendulum", 1, (("updates", 300),)),
-)
+@dataclasses.dataclass(frozen=True)
+class Suite:
+    canaries: tuple[Canary, ...]
+    z: float = Z
+    path: str | None = None
 
 
-def requests(suite: Sequence[Canary] = SUITE, seeds: Sequence[int] = SEEDS,
-             extra: Mapping[str, Mapping[str, object]] | None = None) -> list[RunRequest]:
-    """`extra`: per canary key, config overrides added on top (tests plant regressions)."""
+_TOP_KEYS = {"seeds", "eval_episodes", "tolerance", "z", "canary"}
+_CANARY_KEYS = {"method", "task", "env_steps", "overrides", "seeds", "eval_episodes",
+                "tolerance", "name"}
+
+
+def _seeds(v, where: str) -> tuple[int, ...]:
+    if not (isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool)
+                                               and x >= 0 for x in v)):
+        raise SuiteError(f"{where}: seeds must be a non-empty list of whole numbers >= 0, "
+                         f"e.g. seeds = [0, 1]; got {v!r}")
+    if len(set(v)) != len(v):
+        raise SuiteError(f"{where}: seeds repeat ({v}); list each seed once")
+    return tuple(v)
+
+
+def _number(v, name: str, where: str, low: float, whole: bool = False):
+    ok = isinstance(v, int if whole else (int, float)) and not isinstance(v, bool) and v >= low
+    if not ok:
+        kind = "a whole number" if whole else "a number"
+        raise SuiteError(f"{where}: {name} must be {kind} >= {low:g}, got {v!r}")
+    return v
+
+
+def load_suite(path: str) -> Suite:
+    """Read and validate a suite file: every method and task registered, every budget a
+    positive whole number of env steps, every override a field of the method's config, keys
+    unique. SuiteError names the file, the line of the offending [[canary]] and the fix."""
+    from bench.plugins import ConfigError, UnknownMethodError, build_config, get_method
+    from tasks.registry import TASKS
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except FileNotFoundError:
+        raise SuiteError(f"no canary suite at {path}; write one (docs/adding-a-method.md, "
+                         f"'A canary suite') or drop --suite for ildbench's own") from None
+    try:
+        data = tomllib.loads(raw.decode())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise SuiteError(f"{path}: not valid TOML ({e})") from None
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise SuiteError(f"{path}: unknown key(s) {unknown}; a suite has "
+                         f"{', '.join(sorted(_TOP_KEYS - {'canary'}))} and [[canary]] tables")
+    seeds = _seeds(data.get("seeds", list(SEEDS)), f"{path}")
+    episodes = _number(data.get("eval_episodes", EVAL_EPISODES), "eval_episodes", path, 1, True)
+    tol = _number(data.get("tolerance", ABS_TOL), "tolerance", path, 0)
+    z = _number(data.get("z", Z), "z", path, 0)
+    entries = data.get("canary", [])
+    if not isinstance(entries, list) or not entries:
+        raise SuiteError(f"{path}: no canaries; add [[canary]] tables with method, task and "
+                         "env_steps")
+    lines = [i + 1 for i, line in enumerate(raw.decode().splitlines())
+             if re.match(r"\s*\[\[\s*canary\s*\]\]", line)]
+    out, keys = [], {}
+    for i, c in enumerate(entries):
+        where = f"{path} line {lines[i] if i < len(lines) else '?'} ([[canary]] {i + 1})"
+        bad = sorted(set(c) - _CANARY_KEYS)
+        if bad:
+            raise SuiteError(f"{where}: unknown key(s) {bad}; a canary has "
+                             f"{', '.join(sorted(_CANARY_KEYS))}")
+        missing = [k for k in ("method", "task", "env_steps") if k not in c]
+        if missing:
+            raise SuiteError(f"{where}: missing {', '.join(missing)}; e.g. method = \"bc\", "
+                             "task = \"pointmass\", env_steps = 20000")
+        try:
+            spec = get_method(str(c["method"]))
+        except UnknownMethodError as e:
+            raise SuiteError(f"{where}: {e}; install the plugin that provides it or fix the "
+                             "name") from None
+        if c["task"] not in TASKS:
+            raise SuiteError(f"{where}: unknown task {c['task']!r}; valid tasks: "
+                             f"{', '.join(sorted(TASKS))}")
+        steps = _number(c["env_steps"], "env_steps", where, 1, True)
+        over = c.get("overrides", {})
+        if not isinstance(over, dict):
+            raise SuiteError(f"{where}: overrides must be a table, e.g. overrides = "
+                             f"{{ updates = 300 }}; got {over!r}")
+        try:
+            build_config(spec, c["task"], overrides=over)
+        except ConfigError as e:
+            raise SuiteError(f"{where}: {e}") from None
+        canary = Canary(spec.name, c["task"], steps, tuple(sorted(over.items())),
+                        _seeds(c["seeds"], where) if "seeds" in c else seeds,
+                        _number(c.get("eval_episodes", episodes), "eval_episodes", where, 1,
+                                True),
+                        _number(c.get("tolerance", tol), "tolerance", where, 0),
+                        str(c["name"]) if "name" in c else None)
+        if canary.key in keys:
+            raise SuiteError(f"{where}: canary {canary.key!r} is already defined at "
+                             f"{keys[canary.key]}; give one of them a distinct name = \"...\"")
+        keys[canary.key] = where
+        out.append(canary)
+    return Suite(tuple(out), z=float(z), path=path)
+
+
+def default_suite() -> Suite:
+    """ildbench's own gate (bench/data/canary_suite.toml)."""
+    return load_suite(SUITE_FILE)
+
+
+def requests(suite: Sequence[Canary],
+             extra: Mapping[str, Mapping[str, object]] | None = None
+             ) -> list[tuple[str, RunRequest]]:
+    """(canary key, request) per canary and seed. `extra`: per canary key, config overrides
+    added on top (tests plant regressions)."""
     out = []
     for c in suite:
         over = {**dict(c.overrides), **dict((extra or {}).get(c.key, {}))}
-        for s in seeds:
-            out.append(RunRequest(method=c.method, task=c.task, seed=s,
-                                  budget=Budget(env_steps=c.env_steps, evals=1),
-                                  overrides=over, eval=EVAL))
+        for s in c.seeds:
+            out.append((c.key, RunRequest(method=c.method, task=c.task, seed=s,
+                                          budget=Budget(env_steps=c.env_steps, evals=1),
+                                          overrides=over,
+                                          eval=EvalConfig(num_episodes=c.eval_episodes))))
     return out
 
 
-def run_suite(reqs: Sequence[RunRequest], store: Store,
+def run_suite(reqs: Sequence[tuple[str, RunRequest]], store: Store,
               log: Callable[[str], None] = lambda s: None) -> dict[str, list[float | None]]:
     """{canary key: [normalized score per seed]} (None for a failed run)."""
     from bench.sweep import run_local
+    prepared = [(key, prepare(r)) for key, r in reqs]
+    key_of = {p.run_id: key for key, p in prepared}
     scores: dict[str, list[float | None]] = {}
-    for o in run_local([prepare(r) for r in reqs], store, log=log, isolate=False):
+    for o in run_local([p for _, p in prepared], store, log=log, isolate=False):
         ok = o.status == "ok" and o.normalized is not None
-        scores.setdefault(f"{o.method}/{o.task}", []).append(float(o.normalized) if ok
-                                                              else None)
+        scores.setdefault(key_of[o.run_id], []).append(float(o.normalized) if ok else None)
     return scores
 
 
@@ -120,7 +229,8 @@ class Verdict:
 
 
 def compare(reference: Mapping[str, dict], now: Mapping[str, dict], abs_tol: float = ABS_TOL,
-            z: float = Z) -> list[Verdict]:
+            z: float = Z, tolerances: Mapping[str, float] | None = None) -> list[Verdict]:
+    """`tolerances`: per canary key, its own absolute tolerance (else `abs_tol`)."""
     out = []
     for key in sorted(set(reference) | set(now)):
         ref, cur = reference.get(key), now.get(key)
@@ -128,7 +238,7 @@ def compare(reference: Mapping[str, dict], now: Mapping[str, dict], abs_tol: flo
             out.append(Verdict(key, None, cur and cur["mean"], 0.0, True,
                                "new canary, no reference yet (run `ildbench check --update`)"))
             continue
-        tol = max(abs_tol, z * ref.get("std", 0.0) / math.sqrt(max(ref.get("n", 1), 1)))
+        tol = max((tolerances or {}).get(key, abs_tol), z * ref.get("std", 0.0) / math.sqrt(max(ref.get("n", 1), 1)))
         if cur is None:
             out.append(Verdict(key, ref["mean"], None, tol, False,
                                "canary missing from this run"))
@@ -160,37 +270,49 @@ def render(verdicts: Sequence[Verdict]) -> str:
     return "\n".join(rows)
 
 
-def load_reference(path: str = REFERENCE) -> dict:
+def load_reference(path: str = REFERENCE, suite_path: str | None = None) -> dict:
+    fix = (f"ildbench check --suite {suite_path} --reference {path} --update"
+           if suite_path else "ildbench check --update")
     try:
         with open(path) as f:
             data = json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"no canary reference at {path}; create it with "
-                                "`ildbench check --update`") from None
+        raise FileNotFoundError(f"no canary reference at {path}; create it with `{fix}` "
+                                "and commit it") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"canary reference {path} is not valid JSON ({e}); restore it from "
-                         "git or regenerate it with `ildbench check --update`") from None
+                         f"git or regenerate it with `{fix}`") from None
+    if not isinstance(data, dict) or not isinstance(data.get("canaries"), dict):
+        raise ValueError(f"canary reference {path} has no 'canaries' table; regenerate it "
+                         f"with `{fix}`")
     return data["canaries"]
 
 
 def check(reference_path: str = REFERENCE, update: bool = False, store_dir: str | None = None,
           extra: Mapping[str, Mapping[str, object]] | None = None,
-          suite: Sequence[Canary] = SUITE,
+          suite: Suite | Sequence[Canary] | None = None,
           log: Callable[[str], None] = print) -> tuple[bool, str]:
-    """Run the suite; compare (or write the reference). Returns (passed, report). Canaries
-    of the reference that are not in `suite` are not compared."""
+    """Run the suite (default: ildbench's own); compare (or write the reference). Returns
+    (passed, report). Canaries of the reference that are not in the suite are not
+    compared. The reference is read before any run, so a missing one costs nothing."""
+    suite = default_suite() if suite is None else suite
+    if not isinstance(suite, Suite):
+        suite = Suite(tuple(suite))
+    ref = None if update else load_reference(reference_path, suite.path)
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(store_dir or tmp)
-        now = summarize(run_suite(requests(suite, extra=extra), store, log=log))
-    for c in suite:  # what these numbers were measured with, stored beside the reference's
+        now = summarize(run_suite(requests(suite.canaries, extra=extra), store, log=log))
+    for c in suite.canaries:  # what these numbers were measured with, beside the reference's
         now[c.key]["canary"] = c.definition
     if update:
         write_json_atomic(reference_path, {
-            "about": "ildbench canary reference: normalized final scores per (method, task) "
-                     "over seeds; written by `ildbench check --update`",
-            "seeds": list(SEEDS), "abs_tol": ABS_TOL, "z": Z, "canaries": now})
+            "about": "ildbench canary reference: normalized final scores per canary over "
+                     "its seeds; written by `ildbench check --update`",
+            "suite": os.path.basename(suite.path) if suite.path else None,
+            "z": suite.z, "canaries": now})
         return True, f"reference written: {reference_path}\n" + json.dumps(now, indent=1)
-    ref = load_reference(reference_path)
-    verdicts = compare({k: v for k, v in ref.items() if k in {c.key for c in suite}}, now)
+    keys = {c.key for c in suite.canaries}
+    verdicts = compare({k: v for k, v in ref.items() if k in keys}, now, z=suite.z,
+                       tolerances={c.key: c.tolerance for c in suite.canaries})
     passed = all(v.passed for v in verdicts)
     return passed, render(verdicts) + f"\n\ncanary gate: {'PASS' if passed else 'FAIL'}"

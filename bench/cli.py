@@ -6,8 +6,9 @@
     ildbench sweep --methods M.. --tasks T.. --seeds N --budget 10m [--executor ray] [--dry-run]
     ildbench quick                      the main job: a quick leaderboard on the defaults
     ildbench leaderboard                table, aggregates and curves from the store
-    ildbench check [--update]           CI regression gate (canary suite vs reference)
+    ildbench check [--suite S] [--update]  CI regression gate (canary suite vs reference)
     ildbench reindex --store S          rename records to the current run-id scheme
+    ildbench new-method NAME [--dir D]  a minimal method plugin package to start from
     ildbench render --task T --method M HTML: expert demo next to the method's final policy
     ildbench tradeoff backends|budget|ild|substeps --task T   speed-accuracy tables, plots
     ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
@@ -223,14 +224,29 @@ def cmd_reindex(args):
 
 
 def cmd_check(args):
-    from bench.check import REFERENCE, check
+    from bench.check import REFERENCE, SUITE_FILE, check, load_suite
     from bench.runner import enable_compilation_cache
+    suite = load_suite(args.suite or SUITE_FILE)  # a malformed suite stops before any run
+    reference = args.reference
+    if reference is None:  # ildbench's own reference, or <suite>_reference.json beside it
+        reference = (REFERENCE if args.suite is None
+                     else os.path.splitext(args.suite)[0] + "_reference.json")
     enable_compilation_cache(args.jax_cache)
-    passed, report = check(args.reference or REFERENCE, update=args.update,
+    passed, report = check(reference, update=args.update, suite=suite,
                            log=(lambda s: print(s, flush=True)) if args.verbose else
                            (lambda s: None))
     print(report)
     return 0 if passed else 1
+
+
+def cmd_new_method(args):
+    from bench.scaffold import write
+    folder = write(args.name, args.dir)
+    print(f"wrote {folder}/ (method {args.name!r}); next:\n"
+          f"  pip install -e {folder}\n"
+          f"  ildbench conform --method {args.name}\n"
+          f"  see {folder}/README.md and docs/adding-a-method.md")
+    return 0
 
 
 def cmd_conform(args):
@@ -441,10 +457,15 @@ def build_parser():
     p.add_argument("--dry-run", action="store_true", help="list the renames only")
     p.set_defaults(fn=cmd_reindex)
     p = sub.add_parser("check", help="CI regression gate: canary suite vs committed reference")
+    p.add_argument("--suite", default=None,
+                   help="canary suite file (TOML: method, task, env_steps, overrides, seeds, "
+                        "tolerance per [[canary]]; default: ildbench's own, "
+                        "bench/data/canary_suite.toml)")
     p.add_argument("--update", action="store_true",
                    help="rewrite the reference from this run (after an intended change)")
     p.add_argument("--reference", default=None, help="reference file (default: "
-                   "bench/data/canary_reference.json)")
+                   "bench/data/canary_reference.json for ildbench's suite, else "
+                   "<suite>_reference.json beside the suite file)")
     p.add_argument("--verbose", action="store_true", help="print the runs' progress")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
     p.set_defaults(fn=cmd_check)
@@ -462,6 +483,11 @@ def build_parser():
     p.add_argument("--verbose", action="store_true", help="print the runs' progress")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
     p.set_defaults(fn=cmd_conform)
+    p = sub.add_parser("new-method", help="write a minimal, installable method plugin "
+                       "(pyproject with the entry point, method, test, canary suite, CI)")
+    p.add_argument("name", help="the method's name (a Python identifier, e.g. mymethod)")
+    p.add_argument("--dir", default=None, help="where to write it (default ./ildbench-NAME)")
+    p.set_defaults(fn=cmd_new_method)
     p = sub.add_parser("render", help="HTML: the expert demo next to a method's final policy")
     p.add_argument("--task", required=True)
     p.add_argument("--method", required=True)
@@ -557,12 +583,13 @@ def main(argv=None) -> int:
     from bench.api import InformationError
     from bench.budget import BudgetError
     from bench.plugins import ConfigError, UnknownMethodError
+    from bench.scaffold import ScaffoldError
     from tasks.demo import DemoError
     from tasks.registry import UnknownTaskError
     try:
         return args.fn(args) or 0
     except (UnknownTaskError, UnknownMethodError, ConfigError, BudgetError, DemoError,
-            InformationError, FileNotFoundError, ValueError) as e:
+            InformationError, FileNotFoundError, ScaffoldError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

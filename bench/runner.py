@@ -303,6 +303,24 @@ def prepare(req: RunRequest) -> Prepared:
     return Prepared(req, spec, config, demo, rid)
 
 
+def failed_record(p: Prepared, message: str) -> dict:
+    """The record of a cell whose process died before it could write its own (a Ray worker
+    killed mid-cell): status 'failed', so the leaderboard lists it and a sweep re-runs it."""
+    req, spec = p.request, p.spec
+    now = datetime.datetime.now(datetime.timezone.utc).isoformat()
+    return {"run_id": p.run_id, "method": spec.name, "method_version": spec.version,
+            "task": req.task, "seed": req.seed, "preset": req.preset,
+            "config": dataclasses.asdict(p.config), "uses": dataclasses.asdict(spec.uses),
+            "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
+            "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
+            "status": "failed", "message": message, "final_return": None,
+            "final_normalized": None, "curve": [], "transfer": {}, "train_metrics": {},
+            "env_steps": 0, "references": {"expert_return": p.demo.expert_return,
+                                           "random_return": p.demo.random_return},
+            "git_revision": git_revision(), "machine": machine(), "started": now,
+            "finished": now}
+
+
 def execute(p: Prepared, store: Store, force: bool = False,
             log: Callable[[str], None] = print) -> tuple[dict, bool]:
     """Run one prepared cell; returns (record, skipped)."""

@@ -47,8 +47,8 @@ import time
 from typing import Callable, Sequence
 
 from bench.budget import Budget, format_steps
-from bench.runner import Prepared, RunRequest, execute, prepare
-from bench.store import Store
+from bench.runner import Prepared, RunRequest, execute, failed_record, prepare
+from bench.store import Store, write_atomic
 
 
 @dataclasses.dataclass
@@ -369,54 +369,75 @@ def run_local(prepared: Sequence[Prepared], store: Store, force: bool = False,
     return out
 
 
-def _ray_cell(request: RunRequest, store_root: str, force: bool, jax_cache: str | None,
-              cpus: float) -> dict:
-    """A cell in a Ray worker, which records the CPUs the cell reserved."""
+def _ray_cell(request: RunRequest, jax_cache: str | None, cpus: float) -> dict:
+    """A cell in a Ray worker, which records the CPUs the cell reserved. It runs into a
+    private folder of the worker's and returns its record and side files (the render
+    trajectory) to the driver, which writes them into its own store: the cluster needs no
+    shared disk."""
     import os
     os.environ["ILDBENCH_CPUS_PER_RUN"] = str(cpus)
     t0 = time.perf_counter()
-    p, rec, skipped = _cell(request, store_root, force, jax_cache, log=lambda s: None)
-    return {"run_id": p.run_id, "status": rec["status"],
-            "normalized": rec.get("final_normalized"), "skipped": skipped,
-            "wall_s": time.perf_counter() - t0, "env_steps": rec.get("env_steps")}
+    tmp = tempfile.mkdtemp(prefix="ildbench-cell-")
+    try:
+        p, rec, _ = _cell(request, tmp, True, jax_cache, log=lambda s: None)
+        files = {}
+        for name in os.listdir(tmp):
+            if name.startswith(p.run_id + ".") and not name.endswith(".json"):
+                with open(os.path.join(tmp, name), "rb") as f:
+                    files[name] = f.read()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"record": rec, "files": files, "wall_s": time.perf_counter() - t0}
+
+
+def _ray_warmup(request: RunRequest, jax_cache: str | None, cpus: float) -> None:
+    """A compile warm-up in a Ray worker, into a private folder it then removes."""
+    _ray_cell(request, jax_cache, cpus)
+
+
+def write_returned(store: Store, record: dict, files: dict[str, bytes]) -> None:
+    """Write a cell's record and side files, returned by a worker, into the driver's store
+    (side files first, so a record never names a file that is not there yet)."""
+    import os
+    for name, data in files.items():
+        write_atomic(os.path.join(store.root, os.path.basename(name)),
+                     lambda f, d=data: f.write(d), binary=True)
+    store.write(record)
 
 
 def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = None,
             cpus_per_run: float = 1, gpus_per_run: float = 0, force: bool = False,
             jax_cache: str | None = None, log: Callable[[str], None] = print,
-            init_kwargs: dict | None = None, warm: bool = True) -> list[Outcome]:
+            init_kwargs: dict | None = None, warm: bool = True,
+            on_submit: Callable[[Prepared, object], None] | None = None) -> list[Outcome]:
     """Cells as Ray tasks. `address`: an existing cluster ('auto' or 'ray://host:port');
     None starts a local Ray. Every cell requests the same CPUs/GPUs, so runs in one
-    comparison get equal resources; the store must be a path every worker can reach.
-    `warm`: each compile group's warm-up runs (as a Ray task, into a throwaway folder in the
-    store) before any cell is submitted. On a cluster the persistent compilation cache
-    (`jax_cache`) must be a path every worker reaches too, or a worker's first cell of a
-    group still compiles from scratch."""
-    import os
-
+    comparison get equal resources. Workers need no access to the store: each returns its
+    record to this process, which writes it (`write_returned`). A cell whose worker dies is
+    recorded as 'failed' with the reason, and re-runs on resume. `warm`: each compile
+    group's warm-up runs as a Ray task before any cell is submitted. On a cluster the
+    persistent compilation cache (`jax_cache`) must be a path every worker reaches, or a
+    worker's first cell of a group still compiles from scratch. `on_submit(p, ref)`: called
+    as each cell is submitted (tests kill a worker through it)."""
     import ray
     if not ray.is_initialized():
         ray.init(address=address, include_dashboard=False, log_to_driver=False,
                  **(init_kwargs or {}))
-    root = os.path.abspath(store.root)
     cell = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run, max_retries=0)(_ray_cell)
     if warm:
         groups = warmup_groups([p for p in prepared
                                 if force or store.finished(p.run_id) is None])
         if groups:
-            os.makedirs(root, exist_ok=True)
-            tmp = tempfile.mkdtemp(prefix=".warmup-", dir=root)
+            warmup = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run,
+                                max_retries=0)(_ray_warmup)
             t0 = time.perf_counter()
-            try:
-                refs = [cell.remote(warmup_request(p.request), tmp, True, jax_cache,
-                                    cpus_per_run) for p in groups]
-                for ref in refs:
-                    try:
-                        ray.get(ref)
-                    except Exception as e:  # the cells run anyway and report their own
-                        log(f"a compile warm-up failed in its Ray worker: {e}")
-            finally:
-                shutil.rmtree(tmp, ignore_errors=True)
+            refs = [warmup.remote(warmup_request(p.request), jax_cache, cpus_per_run)
+                    for p in groups]
+            for ref in refs:
+                try:
+                    ray.get(ref)
+                except Exception as e:  # the cells run anyway and report their own
+                    log(f"a compile warm-up failed in its Ray worker: {e}")
             log(f"compile warm-up of {len(groups)} group(s): {time.perf_counter() - t0:.0f}s")
     pending = {}
     skipped = []
@@ -425,8 +446,10 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
         if done is not None:
             skipped.append(_outcome(p, done, True, 0.0))
         else:
-            ref = cell.remote(p.request, root, force, jax_cache, cpus_per_run)
+            ref = cell.remote(p.request, jax_cache, cpus_per_run)
             pending[ref] = p
+            if on_submit is not None:
+                on_submit(p, ref)
     progress = Progress(len(prepared), len(pending), log, workers=None)
     out = []
     try:
@@ -438,14 +461,16 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
             p = pending.pop(ready[0])
             try:
                 res = ray.get(ready[0])
-                o = Outcome(p.run_id, p.request.method, p.request.task, p.request.seed,
-                            res["status"], res["normalized"], res["skipped"], res["wall_s"],
-                            res.get("env_steps"))
-            except Exception as e:  # the worker died: nothing recorded for this cell
-                log(f"cell {p.run_id} ({p.request.method} on {p.request.task}) crashed in "
-                    f"its Ray worker: {e}")
-                o = Outcome(p.run_id, p.request.method, p.request.task, p.request.seed,
-                            "failed", None, False, 0.0)
+                rec, wall = res["record"], res["wall_s"]
+                write_returned(store, rec, res["files"])
+            except Exception as e:  # the worker died: the cell is recorded as failed
+                first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+                why = type(e).__name__ + (f": {first}" if first else "")
+                log(f"cell {p.run_id} ({p.request.method} on {p.request.task}) died in its "
+                    f"Ray worker ({why}); recorded as failed, it re-runs on resume")
+                rec, wall = failed_record(p, f"the Ray worker died: {why}"), 0.0
+                store.write(rec)
+            o = _outcome(p, rec, False, wall)
             progress.update(o)
             out.append(o)
     finally:

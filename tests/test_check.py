@@ -41,7 +41,7 @@ def test_summarize_mean_std_and_failed_runs():
 
 
 def test_gate_passes_unchanged_and_fails_a_planted_regression(tmp_path):
-    bc = [c for c in check.SUITE if c.key == "bc/pointmass"]
+    bc = [c for c in check.default_suite().canaries if c.key == "bc/pointmass"]
     ref = tmp_path / "reference.json"
     ok, report = check.check(str(ref), update=True, suite=bc, log=lambda s: None)
     assert ok and ref.exists()
@@ -63,11 +63,12 @@ def test_gate_passes_unchanged_and_fails_a_planted_regression(tmp_path):
 
 def test_committed_reference_covers_the_suite():
     data = json.load(open(check.REFERENCE))
-    assert set(data["canaries"]) == {c.key for c in check.SUITE}
+    suite = check.default_suite().canaries
+    assert set(data["canaries"]) == {c.key for c in suite}
     assert all(v["mean"] is not None and v["n"] == len(check.SEEDS)
                for v in data["canaries"].values())
     # the reference was measured with the suite's budgets and overrides as they are now
-    assert {c.key: c.definition for c in check.SUITE} == {
+    assert {c.key: c.definition for c in suite} == {
         k: v["canary"] for k, v in data["canaries"].items()}
 
 
@@ -84,5 +85,93 @@ def test_canary_definition_reads_as_its_stored_json():
     """The definition stored beside a reference compares equal after a JSON round trip, so
     a tuple-valued override does not fail the gate as 'changed' forever."""
     c = check.Canary("ild", "pointmass", 10, (("hidden", (64, 64)), ("num_envs", 8)))
-    assert c.definition == {"env_steps": 10, "overrides": {"hidden": [64, 64], "num_envs": 8}}
+    assert c.definition == {"env_steps": 10, "overrides": {"hidden": [64, 64], "num_envs": 8},
+                            "seeds": [0, 1], "eval_episodes": 16}
     assert json.loads(json.dumps(c.definition)) == c.definition
+
+
+SUITE = '''seeds = [0, 1]
+tolerance = 0.1
+
+[[canary]]
+method = "bc"
+task = "pointmass"
+env_steps = 1
+overrides = { updates = 300 }
+
+[[canary]]
+name = "bc-short"
+method = "bc"
+task = "pointmass"
+env_steps = 1
+overrides = { updates = 1 }
+seeds = [3]
+tolerance = 0.2
+'''
+
+
+def _suite(tmp_path, text, name="suite.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_a_suite_file_sets_each_canarys_budget_overrides_seeds_and_tolerance(tmp_path):
+    s = check.load_suite(_suite(tmp_path, SUITE))
+    a, b = s.canaries
+    assert (a.key, a.env_steps, a.overrides, a.seeds, a.tolerance, a.eval_episodes) == (
+        "bc/pointmass", 1, (("updates", 300),), (0, 1), 0.1, 16)
+    assert (b.key, b.overrides, b.seeds, b.tolerance) == ("bc-short", (("updates", 1),),
+                                                          (3,), 0.2)
+    reqs = check.requests(s.canaries)
+    assert [(k, r.seed, r.overrides["updates"]) for k, r in reqs] == [
+        ("bc/pointmass", 0, 300), ("bc/pointmass", 1, 300), ("bc-short", 3, 1)]
+    assert all(r.budget.env_steps == 1 and r.eval.num_episodes == 16 for _, r in reqs)
+    # per-canary tolerance: a drop of 0.15 fails at 0.1, passes at 0.2
+    v = {x.key: x for x in check.compare(
+        {"bc/pointmass": _ref(0.9), "bc-short": _ref(0.9)},
+        {"bc/pointmass": _ref(0.75), "bc-short": _ref(0.75)},
+        tolerances={c.key: c.tolerance for c in s.canaries})}
+    assert not v["bc/pointmass"].passed and v["bc-short"].passed
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[[canary]]\nmethod = 'nope'\ntask = 'pointmass'\nenv_steps = 5\n",
+     "line 1 ([[canary]] 1): unknown method 'nope'"),
+    ("seeds = [0]\n\n[[canary]]\nmethod = 'bc'\ntask = 'mars'\nenv_steps = 5\n",
+     "line 3 ([[canary]] 1): unknown task 'mars'; valid tasks: acrobot"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 0\n",
+     "env_steps must be a whole number >= 1, got 0"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1.5\n",
+     "env_steps must be a whole number >= 1, got 1.5"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\n", "missing env_steps"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1\n"
+     "overrides = { lr = 1 }\n", "has no config field 'lr'"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1\nbudget = 3\n",
+     "unknown key(s) ['budget']"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1\nseeds = []\n",
+     "seeds must be a non-empty list"),
+    ("[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1\n\n"
+     "[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 2\n",
+     "line 6 ([[canary]] 2): canary 'bc/pointmass' is already defined at"),
+    ("seeds = [0\n", "not valid TOML"),
+    ("seeds = [0]\n", "no canaries"),
+])
+def test_a_malformed_suite_names_the_line_and_the_fix(tmp_path, text, message):
+    with pytest.raises(check.SuiteError) as e:
+        check.load_suite(_suite(tmp_path, text))
+    assert message in str(e.value) and "suite.toml" in str(e.value)
+
+
+def test_the_cli_refuses_a_bad_suite_or_a_missing_reference_before_any_run(tmp_path, capsys):
+    from bench.cli import main
+    bad = _suite(tmp_path, "[[canary]]\nmethod = 'bc'\ntask = 'mars'\nenv_steps = 1\n")
+    assert main(["check", "--suite", bad]) == 2
+    assert "unknown task 'mars'" in capsys.readouterr().err
+    assert main(["check", "--suite", str(tmp_path / "absent.toml")]) == 2
+    assert "no canary suite at" in capsys.readouterr().err
+    good = _suite(tmp_path, SUITE)
+    assert main(["check", "--suite", good]) == 2          # no suite_reference.json yet
+    err = capsys.readouterr().err
+    assert "no canary reference at" in err and "suite_reference.json" in err
+    assert f"ildbench check --suite {good} --reference" in err and "--update" in err

@@ -124,7 +124,9 @@ def test_packaging_installs_the_three_packages_and_their_runtime_data():
     assert {p.split(".")[0] for p in found} == set(INSTALLED)
     data = cfg["package-data"]
     assert "data/references/*.json" in data["tasks"] and "data/*.json" in data["bench"]
-    from bench.check import REFERENCE
+    assert "data/*.toml" in data["bench"]
+    from bench.check import REFERENCE, SUITE_FILE
+    assert os.path.isfile(SUITE_FILE) and os.path.dirname(SUITE_FILE) == os.path.dirname(REFERENCE)
     from bench.transfer import REF_DIR
     assert os.path.isfile(REFERENCE)
     assert os.path.isfile(os.path.join(REF_DIR, "hopper.json"))

@@ -270,3 +270,51 @@ def test_child_starts_its_parent_watch_before_the_cell(monkeypatch):
     monkeypatch.setattr(sweep, "_cell", lambda *a, **k: calls.append("cell"))
     sweep._child(_bc(0), "unused", False, None, quiet=True)
     assert calls == ["watch", "cell"]
+
+
+@ray.remote
+def _worker_cwd() -> str:
+    return os.getcwd()
+
+
+def test_ray_workers_return_records_to_the_driver_and_a_killed_cell_reruns(
+        local_ray, tmp_path, monkeypatch):
+    """No shared disk: the driver's store is a path relative to the driver's working
+    directory, which the workers do not share; every record (and trajectory) arrives in the
+    driver's store and none in a worker's folder. A worker killed mid-cell leaves its cell
+    recorded as 'failed' with the reason; the next sweep re-runs it and skips the others."""
+    driver = tmp_path / "driver"
+    driver.mkdir()
+    monkeypatch.chdir(driver)
+    worker_cwd = ray.get(_worker_cwd.remote())
+    assert os.path.realpath(worker_cwd) != os.path.realpath(str(driver))
+    store = Store("runs")
+    long = RunRequest(method="bc", task="pointmass", seed=9, budget=Budget(seconds=60),
+                      overrides={"updates": 10 ** 7, "chunk": 100},
+                      eval=EvalConfig(num_episodes=8))
+    prepared = [prepare(_bc(s)) for s in range(2)] + [prepare(long)]
+    victim = prepared[-1].run_id
+
+    def kill_the_long_cell(p, ref):
+        if p.run_id == victim:
+            import threading
+            threading.Timer(8.0, lambda: ray.cancel(ref, force=True)).start()
+
+    lines = []
+    out = run_ray(prepared, store, log=lines.append, on_submit=kill_the_long_cell,
+                  warm=False)  # BC's warm-up would run the long cell's 10^7 updates whole
+    assert {o.run_id: o.status for o in out} == {
+        prepared[0].run_id: "ok", prepared[1].run_id: "ok", victim: "failed"}
+    failed = store.get(victim)
+    assert failed["status"] == "failed" and "Ray worker died" in failed["message"]
+    assert failed["method"] == "bc" and failed["seed"] == 9
+    assert any("recorded as failed, it re-runs on resume" in l for l in lines)
+    for p in prepared[:2]:
+        assert store.get(p.run_id)["status"] == "ok"
+        assert os.path.exists(os.path.join("runs", f"{p.run_id}.traj.npz"))
+    assert not os.path.exists(os.path.join(worker_cwd, "runs", f"{prepared[0].run_id}.json"))
+    # resume: the finished cells are skipped, the failed one runs again (shortened here)
+    again = run_ray(prepared[:2], store, log=lines.append)
+    assert all(o.skipped for o in again)
+    from bench.store import FINISHED
+    assert store.finished(victim) is None and "failed" not in FINISHED
