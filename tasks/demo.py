@@ -91,12 +91,13 @@ def library_versions() -> dict[str, str]:
 
 
 def harness_version() -> str:
-    """The installed ildbench's version (the package metadata; "0.1.0" from a bare checkout)."""
+    """The installed ildbench's version (the package metadata; "unknown" from a checkout
+    that was never installed). tasks/ does not import bench/, where the version is written."""
     from importlib.metadata import PackageNotFoundError, version
     try:
         return version("ildbench")
     except PackageNotFoundError:
-        return "0.1.0"
+        return "unknown"
 
 
 def save_demo(path: str, demo: Demo) -> str:
