@@ -7,9 +7,11 @@ score at 50k as well:
 
 - a run whose whole training used at most S env steps (BC, which never steps the env; a
   run whose step budget is S) counts at S with its final score;
-- otherwise its evaluation nearest to S within `TOLERANCE` (relative) counts at S. A method
-  reports in chunks (ILD: one update of batch x horizon steps; DAC, PWIL: a chunk of env
-  steps), so an evaluation lands near, not on, the multiple of budget/evals;
+- otherwise its evaluation nearest to S within `TOLERANCE` (10%, relative) counts at S. A
+  method reports in chunks (ILD: one update of batch x horizon steps, 4,096 on hopper, so
+  its evaluation for 50k lands at 53,248; DAC, PWIL: a chunk of env steps), so an
+  evaluation lands near, not on, the multiple of budget/evals; the table prints the median
+  env steps of the evaluations it read;
 - a run with no evaluation that close to S is left out of that budget (the `seeds` column
   says how many runs each cell has).
 
@@ -23,7 +25,7 @@ import pandas as pd
 
 from bench.budget import format_steps
 
-TOLERANCE = 0.05
+TOLERANCE = 0.10
 BUDGETS = (50_000, 200_000)
 COLUMNS = ["env_steps_budget", "task", "method", "variant", "seeds", "normalized_mean",
            "normalized_std", "env_steps_read", "updates_median"]

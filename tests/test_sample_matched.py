@@ -22,8 +22,9 @@ def test_a_run_counts_at_the_evaluation_nearest_the_budget_within_the_tolerance(
     assert sm.point_at(CURVE, 200_016, 200_000)["normalized"] == 0.9     # 0.008% over
     assert sm.point_at(CURVE, 200_016, 10_000)["normalized"] == 0.3      # 2.6% over
     assert sm.point_at(CURVE, 200_016, 100_000) is None                  # nearest 51k: 49% off
-    assert sm.point_at(CURVE, 200_016, 45_000) is None                   # 40,960: 9% off
-    assert sm.point_at(CURVE, 200_016, 45_000, tolerance=0.1)["normalized"] == 0.5
+    assert sm.point_at(CURVE, 200_016, 30_000) is None                   # 40,960: 37% off
+    assert sm.point_at(CURVE, 200_016, 45_000)["normalized"] == 0.5      # 40,960: 9% off
+    assert sm.point_at(CURVE, 200_016, 45_000, tolerance=0.05) is None
 
 
 def test_a_run_that_used_no_more_than_the_budget_counts_with_its_final_evaluation():

@@ -101,3 +101,69 @@ def test_curve_metrics_hand_values():
     assert curves.auc([], 60) == 0.0
     with pytest.raises(ValueError, match="horizon"):
         curves.auc(curve, 0)
+
+
+def test_median_hand_value():
+    assert stats.median([[1.0, 2.0], [3.0, 10.0]]) == 2.5
+
+
+def test_probability_of_improvement_names_the_bad_input():
+    """Mutants: the error names 'x'/'y' and both task counts."""
+    with pytest.raises(stats.ShapeError, match=r"^x: holds NaN"):
+        stats.probability_of_improvement([[np.nan]], [[1.0]])
+    with pytest.raises(stats.ShapeError, match=r"^y: holds NaN"):
+        stats.probability_of_improvement([[1.0]], [[np.nan]])
+    with pytest.raises(stats.ShapeError, match=r"^x has 2 tasks, y has 1: compare on the same "
+                                               r"task columns$"):
+        stats.probability_of_improvement([[1.0, 2.0]], [[1.0]])
+    for bad in ("x", "y"):
+        args = ([[np.inf]], [[1.0]]) if bad == "x" else ([[1.0]], [[np.inf]])
+        with pytest.raises(stats.ShapeError, match=rf"^{bad}: holds NaN"):
+            stats.poi_ci(*args, reps=10)
+
+
+def test_poi_ci_resamples_every_run_of_both_sides_and_is_seeded():
+    """Each replicate draws the runs of x and of y with replacement from ALL their rows: with
+    x = (0, 1) against y = (0.5, 0.5) a replicate's P is 0, 1/2 or 1, so the 95% interval is
+    [0, 1]; a draw that skipped row 0 (or drew from the task axis) would pin it. The same seed
+    gives the same interval, the conf level is honoured."""
+    x, y = np.array([[0.0], [1.0]]), np.array([[0.5], [0.5]])
+    p, lo, hi = stats.poi_ci(x, y, reps=400, seed=0)
+    assert (p, lo, hi) == (0.5, 0.0, 1.0)
+    p, lo, hi = stats.poi_ci(y, x, reps=400, seed=0)        # the same on y's side
+    assert (p, lo, hi) == (0.5, 0.0, 1.0)
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(6, 3)), rng.normal(size=(5, 3))
+    first = stats.poi_ci(a, b, reps=200, seed=7)
+    assert stats.poi_ci(a, b, reps=200, seed=7) == first
+    assert stats.poi_ci(a, b, reps=200, seed=8) != first
+    _, lo50, hi50 = stats.poi_ci(a, b, reps=200, seed=7, conf=0.5)
+    assert first[1] < lo50 < hi50 < first[2]
+
+
+def test_improvement_table_compares_with_every_other_method_at_the_given_reps_and_seed():
+    rng = np.random.default_rng(0)
+    mats = {m: pd.DataFrame(rng.normal(size=(4, 2)), columns=["a", "b"])
+            for m in ("ild", "bc", "dac")}
+    imp = stats.improvement_table(mats, "ild", reps=150)
+    assert list(imp.columns) == ["comparison", "p", "lo", "hi"]
+    assert imp.comparison.tolist() == ["P(ild > bc)", "P(ild > dac)"]
+    for other, row in zip(("bc", "dac"), imp.itertuples()):
+        want = stats.poi_ci(mats["ild"].to_numpy(), mats[other].to_numpy(), 150, seed=0)
+        assert (row.p, row.lo, row.hi) == want
+    again = stats.improvement_table(mats, "ild", reps=150, seed=4)
+    want = stats.poi_ci(mats["ild"].to_numpy(), mats["bc"].to_numpy(), 150, seed=4)
+    assert tuple(again.iloc[0][["p", "lo", "hi"]]) == want
+    with pytest.raises(stats.ShapeError, match="no scores for 'x'; methods present: bc, dac, ild"):
+        stats.improvement_table(mats, "x")
+
+
+def test_poi_ci_is_seeded_by_default_and_a_lone_method_gives_an_empty_table():
+    """A report is reproducible without naming a seed; with no method to compare against,
+    the improvement table is empty but keeps its columns (the report reads them)."""
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(4, 2)), rng.normal(size=(4, 2))
+    assert stats.poi_ci(a, b, reps=100) == stats.poi_ci(a, b, reps=100, seed=0)
+    lone = stats.improvement_table({"ild": pd.DataFrame(a, columns=["t", "u"])}, "ild",
+                                   reps=10)
+    assert lone.empty and list(lone.columns) == ["comparison", "p", "lo", "hi"]
