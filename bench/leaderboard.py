@@ -93,15 +93,19 @@ def _median(col: pd.Series) -> float:
     return float(v.median()) if len(v) else float("nan")
 
 
-def _min_env_steps(method: str) -> int | None:
+def _spec(method: str):
+    """The registered MethodSpec of `method`, None for a method not registered here."""
     from bench.plugins import all_methods
-    spec = all_methods().get(method)
+    return all_methods().get(method)
+
+
+def _min_env_steps(method: str) -> int | None:
+    spec = _spec(method)
     return None if spec is None else spec.min_env_steps
 
 
 def _registered_version(method: str) -> str | None:
-    from bench.plugins import all_methods
-    spec = all_methods().get(method)
+    spec = _spec(method)
     return None if spec is None else str(spec.version)
 
 

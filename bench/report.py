@@ -222,38 +222,38 @@ def _finish(fig, ax, xlabel: str, title: str, out_dir: str, name: str) -> str:
     return save_figure(fig, out_dir, name)
 
 
-def _best_rows(board: pd.DataFrame) -> pd.DataFrame:
-    """The scored imitation rows of a board, one per (budget, task, method): the variant with
-    the most seeds."""
-    rows = board[~board.floor.fillna(False).astype(bool) & ~board.reference.astype(bool)
-                 & (board.seeds > 0)]
-    return (rows.sort_values(["seeds", "variant"], ascending=[False, True], kind="stable")
-            .drop_duplicates(["budget", "task", "method"]))
+def _most_seeds(df: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """One row per `keys`: the variant with the most seeds (ties: the first variant id)."""
+    return (df.sort_values(["seeds", "variant"], ascending=[False, True], kind="stable")
+            .drop_duplicates(keys))
+
+
+def _scores(part: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """{task: {method: mean normalized score}} of table rows."""
+    scores: dict[str, dict[str, float]] = {}
+    for t, m, v in zip(part.task, part.method, part.normalized_mean):
+        scores.setdefault(t, {})[m] = float(v)
+    return scores
 
 
 def paper_tables(board: pd.DataFrame, matched: pd.DataFrame) -> dict[str, list[dict]]:
     """{budget label: bench.paper.comparison rows}: one per wall-clock budget of the board
     and one per sample-matched env-step budget (a step-only budget of the board is read
-    there, at its own and the other step budgets)."""
+    there, at its own and the other step budgets). Each (budget, task, method) is read from
+    its variant with the most seeds."""
     from bench.budget import format_steps
     from bench.paper import comparison
+    scored = board[~board.floor.fillna(False).astype(bool) & ~board.reference.astype(bool)
+                   & (board.seeds > 0)]
     tables = {}
-    for budget, part in _best_rows(board).groupby("budget"):
-        if budget.endswith("env steps") and "/" not in budget:
-            continue
-        scores: dict[str, dict[str, float]] = {}
-        for t, m, v in zip(part.task, part.method, part.normalized_mean):
-            scores.setdefault(t, {})[m] = float(v)
-        tables[f"{budget} of training (wall-clock)"] = comparison(scores)
+    for budget, part in _most_seeds(scored, ["budget", "task", "method"]).groupby("budget"):
+        if not (budget.endswith("env steps") and "/" not in budget):
+            tables[f"{budget} of training (wall-clock)"] = comparison(_scores(part))
     if not matched.empty:
-        best = (matched.sort_values(["seeds", "variant"], ascending=[False, True],
-                                    kind="stable")
-                .drop_duplicates(["env_steps_budget", "task", "method"]))
+        best = _most_seeds(matched, ["env_steps_budget", "task", "method"])
         for budget, part in best.groupby("env_steps_budget"):
-            scores = {}
-            for t, m, v in zip(part.task, part.method, part.normalized_mean):
-                scores.setdefault(t, {})[m] = float(v)
-            tables[f"{format_steps(budget)} env steps (sample-matched)"] = comparison(scores)
+            tables[f"{format_steps(budget)} env steps (sample-matched)"] = comparison(
+                _scores(part))
     return tables
 
 

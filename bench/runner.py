@@ -303,17 +303,21 @@ def prepare(req: RunRequest) -> Prepared:
     return Prepared(req, spec, config, demo, rid)
 
 
-def failed_record(p: Prepared, message: str) -> dict:
-    """The record of a cell whose process died before it could write its own (a Ray worker
-    killed mid-cell): status 'failed', so the leaderboard lists it and a sweep re-runs it."""
+def _record_head(p: Prepared) -> dict:
+    """The fields of a record that say which cell it is (every record starts with them)."""
     req, spec = p.request, p.spec
-    now = datetime.datetime.now(datetime.timezone.utc).isoformat()
     return {"run_id": p.run_id, "method": spec.name, "method_version": spec.version,
             "task": req.task, "seed": req.seed, "preset": req.preset,
             "config": dataclasses.asdict(p.config), "uses": dataclasses.asdict(spec.uses),
             "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
-            "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
-            "status": "failed", "message": message, "final_return": None,
+            "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos}
+
+
+def failed_record(p: Prepared, message: str) -> dict:
+    """The record of a cell whose process died before it could write its own (a Ray worker
+    killed mid-cell): status 'failed', so the leaderboard lists it and a sweep re-runs it."""
+    now = datetime.datetime.now(datetime.timezone.utc).isoformat()
+    return {**_record_head(p), "status": "failed", "message": message, "final_return": None,
             "final_normalized": None, "curve": [], "transfer": {}, "train_metrics": {},
             "env_steps": 0, "references": {"expert_return": p.demo.expert_return,
                                            "random_return": p.demo.random_return},
@@ -372,12 +376,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         log(f"  warning: {spec.name} traced {fun} again {info['count']}x after a report "
             f"(compiled again, inside its budget); JAX says: {info['why']}")
     record = {
-        "run_id": p.run_id, "method": spec.name, "method_version": spec.version,
-        "task": req.task, "seed": req.seed, "preset": req.preset,
-        "config": dataclasses.asdict(p.config), "uses": dataclasses.asdict(spec.uses),
-        "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
-        "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
-        "status": status, "message": message,
+        **_record_head(p), "status": status, "message": message,
         "final_return": final["return"], "final_normalized": final["normalized"],
         "final_from": "final policy" if status == "ok" else "last valid evaluation",
         "curve": ctx.curve, "transfer": transfer,

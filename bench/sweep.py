@@ -390,11 +390,6 @@ def _ray_cell(request: RunRequest, jax_cache: str | None, cpus: float) -> dict:
     return {"record": rec, "files": files, "wall_s": time.perf_counter() - t0}
 
 
-def _ray_warmup(request: RunRequest, jax_cache: str | None, cpus: float) -> None:
-    """A compile warm-up in a Ray worker, into a private folder it then removes."""
-    _ray_cell(request, jax_cache, cpus)
-
-
 def write_returned(store: Store, record: dict, files: dict[str, bytes]) -> None:
     """Write a cell's record and side files, returned by a worker, into the driver's store
     (side files first, so a record never names a file that is not there yet)."""
@@ -428,10 +423,8 @@ def run_ray(prepared: Sequence[Prepared], store: Store, address: str | None = No
         groups = warmup_groups([p for p in prepared
                                 if force or store.finished(p.run_id) is None])
         if groups:
-            warmup = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run,
-                                max_retries=0)(_ray_warmup)
-            t0 = time.perf_counter()
-            refs = [warmup.remote(warmup_request(p.request), jax_cache, cpus_per_run)
+            t0 = time.perf_counter()  # the warm-ups' returned records are dropped
+            refs = [cell.remote(warmup_request(p.request), jax_cache, cpus_per_run)
                     for p in groups]
             for ref in refs:
                 try:
