@@ -3,7 +3,9 @@
 - No true_reward: env rewards read NaN (any use poisons the loss visibly), reward terms
   in `state.metrics` are dropped, and `demo.rewards`/`demo.returns` raise.
 - No sim_gradients: `env.step` is wrapped in stop_gradient, so gradients through the
-  physics are exactly zero.
+  physics are exactly zero. With sim_gradients: the env runs the task's physics plan
+  (`tasks.physics.plan`, chosen by the runner), the same function and gradient as brax's
+  step to float32 round-off, at the cost the plan buys.
 - No demo_states / demo_actions: reading those demo fields raises InformationError.
 """
 from __future__ import annotations
@@ -36,11 +38,17 @@ class NoSimGradient(Wrapper):
 
 
 class TaskView:
-    """The task as a method sees it: `env` is gated; the rest is plain task information.
-    A copy a method makes of it with a `tasks.core` transform (`without_joint_limits`,
-    `with_substep_remat`, `with_small_dots`) comes back behind the same gates (`regated`)."""
+    """The task as a method sees it: `env` is gated, and for a method that differentiates
+    through the physics (`sim_gradients`) it runs `plan` (a `tasks.physics.Plan`; None:
+    the task's env as it is); the rest is plain task information. A copy a method makes of
+    it with a `tasks.core` transform (`without_joint_limits`) comes back behind the same
+    gates, with the same plan (`regated`)."""
 
-    def __init__(self, task: Task, uses: Uses, method: str):
+    def __init__(self, task: Task, uses: Uses, method: str, plan=None):
+        if plan is not None and uses.sim_gradients:
+            from tasks.physics import apply
+            task = apply(task, plan)
+        self.plan = plan if uses.sim_gradients else None
         env = task.env
         if not uses.true_reward:
             env = HideReward(env)
@@ -58,9 +66,10 @@ class TaskView:
         self._method = method
 
     def regated(self, task: Task) -> "TaskView":
-        """`task` (a copy built from this view's spec) behind this view's gates: the
-        transforms build a fresh env from the spec, which would otherwise drop them."""
-        return TaskView(task, self._uses, self._method)
+        """`task` (a copy built from this view's spec) behind this view's gates and with its
+        plan: the transforms build a fresh env from the spec, which would otherwise drop
+        them."""
+        return TaskView(task, self._uses, self._method, self.plan)
 
 
 class DemoView:

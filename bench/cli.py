@@ -75,6 +75,14 @@ def cmd_tasks(args):
                      spec.episode_length, refs))
     _print_table("ildbench tasks", ["task", "backend", "obs", "act", "matched", "T",
                                     "demo / references"], rows)
+    from tasks.physics.plan import PLATFORMS, plan_for
+    BRAX_BACKENDS = ("generalized", "positional", "spring")
+    _print_table("physics plans: the rewrites a method that differentiates through the "
+                 "physics runs (--physics reference: brax's step; docs/physics.md)",
+                 ["task", *PLATFORMS],
+                 [(name, *(plan_for(name, p).describe(spec.env.startswith("brax:") or
+                                                      spec.backend in BRAX_BACKENDS)
+                           for p in PLATFORMS)) for name, spec in TASKS.items()])
 
 
 def cmd_methods(args):
@@ -100,7 +108,8 @@ def _requests(args, methods, tasks, seeds):
                 m).presets else None
         return args.preset
     return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=preset(m),
-                       overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos)
+                       overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos,
+                       physics=args.physics)
             # seed-major: an interrupted sweep leaves whole seeds of the grid, not whole methods
             for s, t, m in itertools.product(seeds, tasks, methods)]
 
@@ -384,6 +393,10 @@ def _add_run_options(p, budget_default=None):
     p.add_argument("--robustness", action="store_true",
                    help="also score it on each family's magnitude grid")
     p.add_argument("--num-demos", type=int, default=1, help="demos handed to the method")
+    p.add_argument("--physics", default="task", choices=["task", "reference"],
+                   help="what a method that differentiates through the physics steps: the "
+                        "task's physics plan on this platform (default; `ildbench tasks` "
+                        "lists them) or brax's step as it is (reference)")
     p.add_argument("--force", action="store_true", help="re-run finished cells")
     p.add_argument("--dry-run", action="store_true", help="print the plan only")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")

@@ -31,6 +31,8 @@ from bench.store import Store
 from bench.transfer import default_summary
 from tasks import make_task
 from tasks.demo import Demo, library_versions, load_demo
+from tasks.physics.plan import FIELDS as PLAN_FIELDS
+from tasks.physics.plan import Plan, choose
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -80,23 +82,35 @@ def _run_key(method: str, version: str, config: dict, task: str, demo_sha: str, 
 
 
 def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budget: Budget,
-           eval_cfg: EvalConfig, num_demos: int) -> str:
+           eval_cfg: EvalConfig, num_demos: int, plan: Plan | None = None) -> str:
     """Content hash of everything that determines the result. The git revision is recorded
     but not hashed (it would re-run every cell after any commit); a method's `version`
     and the ildbench version are hashed instead: bump them when results change. The config
-    enters as its `config_identity` (non-default fields only)."""
-    return _run_key(method.name, method.version,
-                    config_identity(method.config_cls, dataclasses.asdict(config)), task,
-                    demo_sha, seed, dataclasses.asdict(budget), dataclasses.asdict(eval_cfg),
-                    num_demos, __version__)
+    enters as its `config_identity` (non-default fields only), with the physics plan's
+    (`Plan.identity`: the rewrites that differ from `Plan()`) beside it for a method that
+    differentiates through the physics."""
+    identity = config_identity(method.config_cls, dataclasses.asdict(config))
+    if plan is not None:
+        identity = {**identity, **plan.identity()}
+    return _run_key(method.name, method.version, identity, task, demo_sha, seed,
+                    dataclasses.asdict(budget), dataclasses.asdict(eval_cfg), num_demos,
+                    __version__)
 
 
 def record_config_identity(record: Mapping[str, Any]) -> dict:
     """`config_identity` of a stored record, against its method's config class if that
-    method is registered here (else the whole config)."""
+    method is registered here (else the whole config), with its physics plan's identity
+    (`run_id`): the record's `physics` field, or, in a record that has none, the plan's
+    fields its config holds (where the rewrites were config fields)."""
     from bench.plugins import all_methods
     spec = all_methods().get(record.get("method"))
-    return config_identity(spec.config_cls if spec else None, record.get("config") or {})
+    config = dict(record.get("config") or {})
+    if spec is None or not spec.uses.sim_gradients:
+        return config_identity(spec.config_cls if spec else None, config)
+    in_config = {k: config.pop(k) for k in PLAN_FIELDS if k in config}
+    physics = record.get("physics")
+    plan = Plan(**(physics["plan"] if physics else in_config))
+    return {**config_identity(spec.config_cls, config), **plan.identity()}
 
 
 def record_run_id(record: Mapping[str, Any]) -> str:
@@ -274,6 +288,9 @@ class RunRequest:
     overrides: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     eval: EvalConfig = EvalConfig()
     num_demos: int = 1
+    physics: str = "task"
+    """For a method that differentiates through the physics: 'task' (the task's physics plan
+    on this platform, `tasks.physics.plan`) or 'reference' (brax's step as it is)."""
 
 
 @dataclasses.dataclass
@@ -283,6 +300,10 @@ class Prepared:
     config: Any
     demo: Demo
     run_id: str
+    plan: Plan | None = None
+    """The physics plan the method's env runs (None: a method that does not differentiate
+    through the physics steps the task itself)."""
+    platform: str | None = None
 
 
 def prepare(req: RunRequest) -> Prepared:
@@ -290,6 +311,13 @@ def prepare(req: RunRequest) -> Prepared:
     spec = get_method(req.method)
     task = make_task(req.task)
     config = build_config(spec, req.task, req.preset, req.overrides)
+    plan = platform = None
+    if spec.uses.sim_gradients:
+        from bench.plugins import current_platform
+        platform = current_platform()
+        plan = choose(req.task, req.physics, platform)
+    elif req.physics not in ("task", "reference"):
+        choose(req.task, req.physics, "cpu")  # names the valid choices
     if task.spec.demo_path is None:
         raise FileNotFoundError(f"task {req.task!r} has no demo yet; create one with "
                                 f"`ildbench expert train --task {req.task}` then "
@@ -299,8 +327,8 @@ def prepare(req: RunRequest) -> Prepared:
         raise ValueError(f"num_demos must be in 1..{demo.num_demos} for {demo.path}, got "
                          f"{req.num_demos}")
     rid = run_id(spec, config, req.task, demo.sha256, req.seed, req.budget, req.eval,
-                 req.num_demos)
-    return Prepared(req, spec, config, demo, rid)
+                 req.num_demos, plan)
+    return Prepared(req, spec, config, demo, rid, plan, platform)
 
 
 def _record_head(p: Prepared) -> dict:
@@ -310,7 +338,9 @@ def _record_head(p: Prepared) -> dict:
             "task": req.task, "seed": req.seed, "preset": req.preset,
             "config": dataclasses.asdict(p.config), "uses": dataclasses.asdict(spec.uses),
             "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
-            "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos}
+            "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
+            **({"physics": {"choice": req.physics, "platform": p.platform,
+                            "plan": dataclasses.asdict(p.plan)}} if p.plan else {})}
 
 
 def failed_record(p: Prepared, message: str) -> dict:
@@ -343,7 +373,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
     log(f"run {p.run_id}: {spec.name} on {req.task}, seed {req.seed}, "
         f"budget {req.budget.describe()}")
     try:
-        result = spec.train(TaskView(task, spec.uses, spec.name),
+        result = spec.train(TaskView(task, spec.uses, spec.name, p.plan),
                             DemoView(p.demo, spec.uses, spec.name, req.num_demos),
                             p.config, ctx, req.seed)
         if not isinstance(result, TrainResult):

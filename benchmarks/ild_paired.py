@@ -9,7 +9,8 @@ by up to 10% between runs on this 2-core VM, which the 1.2x target cannot absorb
         --variant substep_remat,transposed_backward=false,chunk=4 \\
         --variant substep_remat,chunk=4
 
-A variant is comma-separated ILDConfig fields (a bare name sets a bool field True); its
+A variant is comma-separated ILDConfig or physics-plan fields (tasks/physics/plan.py; a bare
+name sets a bool field True); its
 `chunk` is the updates per jitted call, as the trainer runs them. APG and every variant share
 one network (the paper's 512-256) and one batch (`--batch`), so a variant may not set
 `hidden` or `num_envs`. With `small_dots` APG trains on the same rewritten physics (like with
@@ -18,8 +19,9 @@ closed-form backward (`apg_closed_form`) and with `lean_substeps` on the same le
 (`apg_lean`), so the variants of one call either all set such a
 field or none does. `--apg-physics brax` times brax's APG as shipped instead, whatever the
 variants set (the issue's comparison: ILD's update, rewrites and all, against brax's own
-trainer). A variant that starts with `task` is ILD's config as the task trains it (its
-TASK_OVERRIDES: acrobot's closed form and full BPTT, swimmer's small dots),
+trainer). A variant that starts with `task` is ILD's config and physics plan as the task
+trains with them (its TASK_OVERRIDES and plan: acrobot's closed form and full BPTT,
+swimmer's small dots),
 and the fields after it on top:
 
     python -m benchmarks.ild_paired --task swimmer --variant task --variant task,chunk=4 \\
@@ -54,37 +56,37 @@ import jax
 from bench.malloc import reexec_with_hugepages
 from bench.plugins import ConfigError
 from bench.machine import speed_settings
-from benchmarks.ild_speed import apg_epochs, reward_gradient_norm, speed_setup, task_config
+from benchmarks.ild_speed import Setup, apg_epochs, reward_gradient_norm, speed_setup, task_config
 from methods.ild.config import ILDConfig
-from methods.ild.train import (initial_state, make_chunk, make_rollout_loss, make_update,
-                               rollout_physics)
+from methods.ild.train import initial_state, make_chunk, make_rollout_loss, make_update
 from tasks import make_task
 
 REWRITES = ("small_dots", "closed_form_adjoint", "lean_substeps")
-"""ILDConfig fields that rewrite the physics step; APG then trains on the same rewrite
+"""Physics-plan fields that rewrite the physics step; APG then trains on the same rewrite
 (`apg_env`)."""
 
 
 def apg_env(task, physics: str):
     """The task brax's APG trains on for `apg_physics`'s answer: the task itself for 'brax',
-    else the REWRITES field's physics as ILD's `rollout_physics` builds it without substep
+    else the REWRITES field's physics as ILD's rollouts run it without substep
     remat (brax's APG does not rematerialize), as the benchmark's apg_* rows do."""
     if physics == "brax":
         return task
-    return rollout_physics(task, ILDConfig(substep_remat=False, **{physics: True}))
+    return Setup(ILDConfig()).replace(substep_remat=False, **{physics: True}).physics(task)
 
 
-def parse_variant(text: str, batch: int, task_name: str = "") -> ILDConfig:
-    """'substep_remat,chunk=4' -> ILDConfig(num_envs=batch, substep_remat=True, chunk=4)
+def parse_variant(text: str, batch: int, task_name: str = "") -> Setup:
+    """'substep_remat,chunk=4' -> ILDConfig(num_envs=batch, chunk=4) on Plan(substep_remat=True)
     (the paper's defaults otherwise, as the benchmark's rows; no per-task overrides);
-    'task,chunk=4' -> the config `task_name` trains with (its TASK_OVERRIDES) with chunk=4."""
+    'task,chunk=4' -> the config and plan `task_name` trains with (its TASK_OVERRIDES, its
+    physics plan) with chunk=4."""
     parts = [p for p in text.split(",") if p]
     of_task = bool(parts) and parts[0] == "task"
     fields = dict(p.partition("=")[::2] if "=" in p else (p, "true") for p in parts[of_task:])
     return task_config(task_name if of_task else "", batch, fields)
 
 
-def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig, brax: bool = False) -> str:
+def apg_physics(configs: dict[str, Setup], base: Setup, brax: bool = False) -> str:
     """The physics APG trains on: a REWRITES field that every variant sets ('small_dots',
     'closed_form_adjoint') or 'brax' (the task's own, where none does, or always with
     `brax`: APG as shipped). ValueError, naming the variant and the fix, for a variant whose
@@ -111,25 +113,25 @@ def apg_physics(configs: dict[str, ILDConfig], base: ILDConfig, brax: bool = Fal
     return "brax"
 
 
-def compiled_chunk(task, cfg: ILDConfig, setup):
+def compiled_chunk(task, cfg: Setup, setup):
     """ILD's update under `cfg` on `task`, `cfg.chunk` updates per jitted call as the trainer
     runs them, from `speed_setup`'s (policy, goals, norm, params, keys): (chunk, state, n),
     chunk(state, n) -> (state, metrics), compiled by one call before it returns."""
     policy, goals, norm, params, k = setup
-    update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg, k[2])
+    update, opt, _ = make_update(cfg.physics(task), policy, goals, norm, cfg.config, k[2])
     chunk = make_chunk(update, cfg.chunk)
-    state = initial_state(params, opt, k[3], cfg)
+    state = initial_state(params, opt, k[3], cfg.config)
     n = jax.numpy.int32(cfg.chunk)
     jax.block_until_ready(chunk(state, n))
     return chunk, state, n
 
 
-def compiled_forward(task, base: ILDConfig, setup):
+def compiled_forward(task, base: Setup, setup):
     """The benchmark's `forward` row's call (a forward rollout of `base.num_envs` envs through
     `task`'s physics with ILD's loss, no gradient), compiled by one call before it returns:
     (forward, params)."""
     policy, goals, norm, params, k = setup
-    loss_fn = make_rollout_loss(task, policy, goals, norm, base)
+    loss_fn = make_rollout_loss(task, policy, goals, norm, base.config)
     init_keys = jax.random.split(k[2], base.num_envs)
     forward = jax.jit(lambda p: loss_fn(p, k[3], init_keys)[0])
     jax.block_until_ready(forward(params))
@@ -142,7 +144,7 @@ def run(task_name: str, variants: list[str], batch: int = 32, rounds: int = 6,
     """`apg=False` (`--apg-physics none`): the variants (and the forward) alone, round after
     round, for a task whose reward has no gradient (inverted_pendulum); rows get no APG
     columns' values (NaN)."""
-    base = ILDConfig(num_envs=batch)
+    base = Setup(ILDConfig(num_envs=batch))
     configs = {v: parse_variant(v, batch, task_name) for v in variants}
     physics = apg_physics(configs, base, brax=apg_as_shipped) if apg else "none"
     task = make_task(task_name)
@@ -275,8 +277,9 @@ def main(argv=None):
     p.add_argument("--summarize", nargs="+", metavar="CSV", default=None,
                    help="print the summary of rows an earlier run wrote (--out) and exit")
     p.add_argument("--variant", action="append", default=None,
-                   help="comma-separated ILDConfig fields; a leading 'task' starts from the "
-                        "task's own config (its TASK_OVERRIDES)")
+                   help="comma-separated ILDConfig or physics-plan fields; a leading 'task' "
+                        "starts from the task's own config and plan (its TASK_OVERRIDES, "
+                        "its physics plan)")
     p.add_argument("--apg-physics", choices=("auto", "brax", "none"), default="auto",
                    help="auto: APG on the physics the variants rewrite (like with like); "
                         "brax: brax's APG as shipped, whatever the variants set; none: no "

@@ -7,48 +7,49 @@ rows:
   forward      the batched 128-step rollout + Chamfer loss, value only
   ild          one full ILD update with ILDConfig's defaults (rollout, Chamfer, backward
                through the physics with per-step gradient normalization and truncation 10,
-               clip, Adam; since version 5 each brax physics substep rematerialized): what a
-               task without TASK_OVERRIDES trains with
+               clip, Adam) on `Plan()`'s physics (each brax physics substep rematerialized)
   ild_task     one ILD update as ILD trains this task: the `ild` config with the task's
-               TASK_OVERRIDES (methods/ild/config.py) applied, so acrobot's through its closed
-               form with full BPTT, swimmer's with small dots, inverted_pendulum's with full
-               BPTT, the spring and positional tasks' with lean substeps, the spring tasks' with `hand_adjoint` too; where a
-               task has none, `ild`'s timing again. `--set FIELD=VALUE` (repeatable) puts
-               ILDConfig fields on top, for this row (then named ild_task:FIELD=VALUE;...)
-               and ild_hand's, e.g. `--set hinge_forces=false` times the update without
-               one piece of the task's hand-written adjoint
-  ild_plain    the same without substep remat (`--set substep_remat=false`: ILD's default
-               before version 5); the remat, dots and untransposed rows below start from it
+               TASK_OVERRIDES (methods/ild/config.py) on the task's physics plan
+               (tasks/physics/plan.py), so acrobot's through its closed form with full BPTT,
+               swimmer's with small dots, inverted_pendulum's with full BPTT, the spring and
+               positional tasks' with lean substeps, the spring tasks' with `hand_adjoint`
+               too; where a task has neither, `ild`'s timing again. `--set FIELD=VALUE`
+               (repeatable) puts ILDConfig or plan fields on top, for this row (then named
+               ild_task:FIELD=VALUE;...) and ild_hand's, e.g. `--set hinge_forces=false`
+               times the update without one piece of the task's hand-written adjoint
+  ild_plain    the same without substep remat (`--set substep_remat=false`: brax's step as
+               it is); the remat, dots and untransposed rows below start from it
   ild_no_gn    the default update without per-step gradient normalization
   ild_remat    ild_plain with jax.checkpoint on every step (rematerialization)
   ild_substep  ild_plain with jax.checkpoint on every physics substep inside a step (brax
-               tasks only; the same config as `ild` since version 5, kept for the CSVs' rows: a
-               row whose config another row has timed reports that timing)
+               tasks only; the same setup as `ild`, kept for the CSVs' rows: a row whose
+               setup another row has timed reports that timing)
   ild_both     both: each step checkpointed and each substep inside it (the outer scan then
                stores one state per step, not one per substep)
   dots         the physics step's small matrix products as multiply-and-sum
-               (`--set small_dots=true`, `tasks.core.with_small_dots`; brax tasks only):
-               forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
+               (`--set small_dots=true`, `tasks.physics.transforms.with_small_dots`; brax tasks
+               only): forward_dots, ild_dots, ild_substep_dots (with substep remat) and apg_dots
                (brax's APG on the same rewritten physics, so the ILD / APG ratio compares
                like with like); each of the four is also a row group of its own
   closed_form  the physics differentiated through the task's closed-form step
-               (`--set closed_form_adjoint=true`, `tasks.core.with_closed_form_adjoint`;
-               acrobot only): ild_closed_form, and apg_closed_form (brax's APG on the same
-               closed-form backward, like with like); each is also a row group of its own
+               (`--set closed_form_adjoint=true`,
+               `tasks.physics.transforms.with_closed_form_adjoint`; acrobot only):
+               ild_closed_form, and apg_closed_form (brax's APG on the same closed-form
+               backward, like with like); each is also a row group of its own
   lean         every substep but a control step's last without its joint coordinates
-               (`--set lean_substeps=true`, `tasks.core.with_lean_substeps`; brax's spring and
-               positional tasks with motors): forward_lean (the forward rollout on that
-               physics), ild_lean (the `ild` config with it) and apg_lean (brax's APG on the
-               same lean physics, like with like); each is also a row group of its own
-  ild_hand     the ild_task config with `hand_adjoint` (`tasks.spring_adjoint`: brax's spring
-               substep with hand-written VJPs for six of its pieces: inverse inertia,
+               (`--set lean_substeps=true`, `tasks.physics.transforms.with_lean_substeps`;
+               brax's spring and positional tasks with motors): forward_lean (the forward
+               rollout on that physics), ild_lean (the `ild` config with it) and apg_lean
+               (brax's APG on the same lean physics, like with like); each is also a row group
+               of its own
+  ild_hand     the ild_task config with `hand_adjoint` (`tasks.physics.spring_adjoint`: brax's
+               spring substep with hand-written VJPs for six of its pieces: inverse inertia,
                joint forces and contact impulses moved to the links, integration,
                conversions to link and joint frames), and ild_xla, the same config without
                it (XLA's reverse mode of brax's substep; without its scene-specific pieces
                too: `hinge_forces`, `planar_root`, `rotary_joints`; the spring tasks train
-               with `hand_adjoint`, so there ild_hand is ild_task and
-               ild_xla what they trained with before); brax's spring tasks only, left out
-               elsewhere
+               with `hand_adjoint`, so there ild_hand is ild_task); brax's spring tasks
+               only, left out elsewhere
   untransposed the ild and ild_substep rows with `transposed_backward=false`: the policy
                vmapped per env, flax's backward transposing each kernel at every step
                (ILD's default reads the kernels transposed once per update, the same
@@ -97,12 +98,41 @@ import jax.numpy as jnp
 
 from bench.plugins import ConfigError
 from methods.common.policy import ObsNorm, TanhGaussianPolicy
-from methods.ild.config import HAND_ADJOINT_PIECES, ILDConfig
+from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha
 from methods.ild.train import (StateNorm, initial_state, make_chunk, make_rollout_loss,
                                make_update, rollout_physics)
 from tasks import make_task
-from tasks.core import hand_adjoint_refusal, has_substep_loop, open_loop
+from tasks.core import has_substep_loop, open_loop
+from tasks.physics import Plan, apply, plan_for
+from tasks.physics.plan import FIELDS as PLAN_FIELDS
+from tasks.physics.plan import HAND_ADJOINT_PIECES
+from tasks.physics.transforms import hand_adjoint_refusal
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """An ILD update as the benchmarks time it: the method's config and the physics plan its
+    rollouts differentiate through (`tasks.physics.plan`). A field reads from either, and
+    `replace` sets fields of either by name."""
+    config: ILDConfig
+    plan: Plan = Plan()
+
+    def __getattr__(self, name):
+        if name in PLAN_FIELDS:
+            return getattr(self.plan, name)
+        return getattr(self.config, name)
+
+    def replace(self, **fields) -> "Setup":
+        plan = {k: v for k, v in fields.items() if k in PLAN_FIELDS}
+        config = {k: v for k, v in fields.items() if k not in PLAN_FIELDS}
+        return Setup(dataclasses.replace(self.config, **config),
+                     dataclasses.replace(self.plan, **plan))
+
+    def physics(self, task):
+        """The task the training rollouts differentiate through: ILD's (`rollout_physics`)
+        with this plan applied."""
+        return apply(rollout_physics(task, self.config), self.plan)
 
 
 def temp_bytes(compiled) -> int:
@@ -306,8 +336,8 @@ def expand_rows(only) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...]):
-    """(`rollout_physics(task, config)`, `only`) where `only` asks for a row of `group`
+def _rewritten_physics(task, config: Setup, group: str, only: tuple[str, ...]):
+    """(`config.physics(task)`, `only`) where `only` asks for a row of `group`
     (GROUPS); (None, `only` without the group's rows), saying so, where the task refuses the
     rewrite (small_dots without a brax physics step, closed_form_adjoint without a closed
     form, lean_substeps off brax's spring and positional backends) or no row of the group is
@@ -315,19 +345,34 @@ def _rewritten_physics(task, config: ILDConfig, group: str, only: tuple[str, ...
     rows = GROUPS[group]
     if set(rows) & set(only):
         try:
-            return rollout_physics(task, config), only
+            return config.physics(task), only
         except ValueError as e:
             print(f"{group}: left out on {task.name}: {e}", flush=True)
     return None, tuple(r for r in only if r not in rows)
 
 
-def task_config(task_name: str, batch: int, overrides=None) -> ILDConfig:
-    """ILD's config as it trains `task_name` (the class defaults with the task's
-    TASK_OVERRIDES; '' for none), at `batch` envs, `overrides` on top: the `ild_task` row's
-    and `benchmarks.ild_paired`'s variants. ConfigError for a field ILDConfig lacks."""
-    from bench.plugins import build_config, get_method
-    return build_config(get_method("ild"), task_name, None,
-                        {"num_envs": batch, **(overrides or {})})
+def task_config(task_name: str, batch: int, overrides=None) -> Setup:
+    """ILD's config and physics plan as it trains `task_name` (the class defaults with the
+    task's TASK_OVERRIDES and its plan on this platform; '' for none: `Plan()`), at `batch`
+    envs, `overrides` on top ({field: text}, ILDConfig's or the plan's fields; turning
+    `hand_adjoint` off turns its pieces off, `planar_adjoint` off `planar_links` and
+    `planar_normal_gravity`): the `ild_task` row's and `benchmarks.ild_paired`'s variants.
+    ConfigError for a field neither has."""
+    from bench.plugins import build_config, current_platform, get_method
+    overrides = dict(overrides or {})
+    phys = {k: str(overrides.pop(k)).lower() in ("1", "true", "yes", "on")
+            for k in list(overrides) if k in PLAN_FIELDS}
+    for needed, pieces in (("hand_adjoint", HAND_ADJOINT_PIECES),
+                           ("planar_adjoint", ("planar_links", "planar_normal_gravity"))):
+        if phys.get(needed) is False:
+            phys = {**{f: False for f in pieces}, **phys}
+    config = build_config(get_method("ild"), task_name, None,
+                          {"num_envs": batch, **overrides})
+    plan = plan_for(task_name, current_platform()) if task_name else Plan()
+    try:
+        return Setup(config, dataclasses.replace(plan, **phys))
+    except ValueError as e:
+        raise ConfigError(f"physics plan: {e}") from e
 
 
 def speed_setup(task, config: ILDConfig):
@@ -351,7 +396,7 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     only = expand_rows(only)
     task = make_task(task_name)
     T = task.episode_length
-    base = ILDConfig(num_envs=batch)
+    base = Setup(ILDConfig(num_envs=batch))
     policy, goals, norm, params, k = speed_setup(task, base)
     init_keys = jax.random.split(k[2], batch)
     steps = batch * T
@@ -371,23 +416,23 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
                      "sys_s": float(f"{t.sys_s:.3g}") if t is not None else None})
         print(rows[-1], flush=True)
 
-    loss_fn = make_rollout_loss(task, policy, goals, norm, base)
+    loss_fn = make_rollout_loss(task, policy, goals, norm, base.config)
     if "forward" in only:
         row("forward", _time(lambda p: loss_fn(p, k[3], init_keys)[0], (params,), repeats))
-    plain = dataclasses.replace(base, substep_remat=False)  # ILD's default before version 5
-    remat = dataclasses.replace(plain, remat=True)
-    substep = dataclasses.replace(plain, substep_remat=True)
-    dots = dataclasses.replace(plain, small_dots=True)
-    closed = dataclasses.replace(base, closed_form_adjoint=True)
-    lean = dataclasses.replace(base, lean_substeps=True)
-    lean_plain = dataclasses.replace(plain, lean_substeps=True)  # forward_lean's, apg_lean's
+    plain = base.replace(substep_remat=False)  # ILD's default before version 5
+    remat = plain.replace(remat=True)
+    substep = plain.replace(substep_remat=True)
+    dots = plain.replace(small_dots=True)
+    closed = base.replace(closed_form_adjoint=True)
+    lean = base.replace(lean_substeps=True)
+    lean_plain = plain.replace(lean_substeps=True)  # forward_lean's, apg_lean's
     trained = task_config(task_name, batch, overrides)  # the ild_task row's: as it trains
     spring = hand_adjoint_refusal(task) is None
-    hand = dataclasses.replace(trained, hand_adjoint=True) if spring else None  # ild_hand's
-    # ild_xla's: --set hand_adjoint=false, which takes its pieces' task overrides with it
+    hand = trained.replace(hand_adjoint=True) if spring else None  # ild_hand's
+    # ild_xla's: --set hand_adjoint=false, which turns its pieces off with it
     xla = (task_config(task_name, batch, {**(overrides or {}), "hand_adjoint": "false",
                                           **{f: "false" for f in HAND_ADJOINT_PIECES}})
-           if spring else None)  # a piece `--set` turns on goes with hand_adjoint too
+           if spring else None)
     task_row = "ild_task" + (":" + ";".join(f"{f}={v}" for f, v in overrides.items())
                              if overrides else "")
     dots_task, only = _rewritten_physics(task, dots, "dots", only)
@@ -396,29 +441,29 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
     for name, physics, cfg in (("forward_dots", dots_task, dots),
                                ("forward_lean", lean_task, lean_plain)):
         if name in only:
-            fwd = make_rollout_loss(physics, policy, goals, norm, cfg)
+            fwd = make_rollout_loss(physics, policy, goals, norm, cfg.config)
             row(name, _time(lambda p, f=fwd: f(p, k[3], init_keys)[0], (params,), repeats))
     timed = {}  # (config, updates per call) -> Timing: a row naming a config already timed
     # (ild_substep is ild's config since version 5) reports that timing, not a second one
     for group, name, cfg, n in (
             ("ild", "ild", base, 1), ("ild_task", task_row, trained, 1),
             ("ild_plain", "ild_plain", plain, 1),
-            ("ild_no_gn", "ild_no_gn", dataclasses.replace(base, grad_normalization=False), 1),
+            ("ild_no_gn", "ild_no_gn", base.replace(grad_normalization=False), 1),
             ("ild_remat", "ild_remat", remat, 1), ("ild_substep", "ild_substep", substep, 1),
-            ("ild_both", "ild_both", dataclasses.replace(substep, remat=True), 1),
+            ("ild_both", "ild_both", substep.replace(remat=True), 1),
             ("ild_chunk", f"ild_chunk{chunk}", base, chunk),
             ("ild_remat_chunk", f"ild_remat_chunk{chunk}", remat, chunk),
             ("ild_substep_chunk", f"ild_substep_chunk{chunk}", substep, chunk),
             ("ild_dots", "ild_dots", dots, 1),
             ("ild_substep_dots", "ild_substep_dots",
-             dataclasses.replace(substep, small_dots=True), 1),
+             substep.replace(small_dots=True), 1),
             ("ild_closed_form", "ild_closed_form", closed, 1),
             ("ild_lean", "ild_lean", lean, 1),
             ("ild_hand", "ild_xla", xla, 1), ("ild_hand", "ild_hand", hand, 1),
             ("untransposed", "ild_untransposed",
-             dataclasses.replace(plain, transposed_backward=False), 1),
+             plain.replace(transposed_backward=False), 1),
             ("untransposed", "ild_substep_untransposed",
-             dataclasses.replace(substep, transposed_backward=False), 1)):
+             substep.replace(transposed_backward=False), 1)):
         if (n > 1 and chunk == 1) or group not in only:
             continue
         if group in SUBSTEP_ROWS and not has_substep_loop(task):
@@ -431,9 +476,8 @@ def run(task_name: str, batch: int, repeats: int, with_apg: bool = True,
         if (cfg, n) in timed:
             row(name, timed[cfg, n], per_call=n)
             continue
-        physics = rollout_physics(task, cfg)
-        update, opt, _ = make_update(physics, policy, goals, norm, cfg, k[2])
-        state = initial_state(params, opt, k[3], cfg)
+        update, opt, _ = make_update(cfg.physics(task), policy, goals, norm, cfg.config, k[2])
+        state = initial_state(params, opt, k[3], cfg.config)
         if n == 1:
             t = _time(lambda s: update(s, None)[0], (state,), repeats)
         else:  # the trainer's chunk: n updates in one jitted scan, all n active

@@ -11,8 +11,9 @@ joint angles, read from relative rotations, were). Action: one elbow torque in [
 Hanging (theta1 = pi) earns about 0.13 per step, upright earns 10. No termination.
 
 `Acrobot.closed_form_step` is the same control step written as a double pendulum's
-equations of motion (what this scene needs, nothing more): `tasks.core.with_closed_form_adjoint`
-differentiates it in place of brax's reverse mode.
+equations of motion (what this scene needs, nothing more):
+`tasks.physics.transforms.with_closed_form_adjoint` differentiates it in place of brax's
+reverse mode.
 """
 from __future__ import annotations
 

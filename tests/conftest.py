@@ -1,9 +1,4 @@
-import contextlib
-import functools
-import importlib.util
 import os
-import pathlib
-import sys
 import warnings
 
 import pytest
@@ -38,37 +33,6 @@ def _jax_cache(tmp_path_factory):
     from bench.runner import enable_compilation_cache
     enable_compilation_cache(os.environ.get("ILDBENCH_JAX_CACHE") or
                              str(tmp_path_factory.mktemp("jax_cache")))
-
-
-RESULTS = pathlib.Path(__file__).resolve().parents[1] / "results"
-
-
-@contextlib.contextmanager
-def _results_script(folder: str, name: str):
-    """results/FOLDER/scripts/NAME.py loaded as a module, with its folder on the import path
-    while in use (the substep scripts import their neighbour `timing`)."""
-    scripts = str(RESULTS / folder / "scripts")
-    sys.path.insert(0, scripts)
-    try:
-        spec = importlib.util.spec_from_file_location(name, f"{scripts}/{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.path.remove(scripts)
-
-
-@pytest.fixture(scope="session")
-def results_script():
-    """`with results_script("planar", "step_cost") as mod:` loads
-    results/planar/scripts/step_cost.py."""
-    return _results_script
-
-
-@pytest.fixture(scope="session")
-def substep_script():
-    """`with substep_script("loop_ops") as mod:` loads results/substep/scripts/loop_ops.py."""
-    return functools.partial(_results_script, "substep")
 
 
 @pytest.fixture

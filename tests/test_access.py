@@ -62,25 +62,48 @@ def _step_tangent(env, a):
 
 def test_a_transformed_view_keeps_its_gates():
     """tasks.core's transforms build a fresh env from the task's spec; handed a method's view
-    they must hand back one gated the same way, or a method using them (ILD's substep_remat,
-    small_dots, joint_limits=False) would see the true reward and the physics gradient its
+    they must hand back one gated the same way, or a method using them (a physics plan's
+    rewrites, ILD's joint_limits=False) would see the true reward and the physics gradient its
     Uses withheld."""
-    from tasks.core import Task, with_small_dots, with_substep_remat, without_joint_limits
+    from tasks.core import Task, without_joint_limits
+    from tasks.physics.transforms import with_small_dots, with_substep_remat
     task = make_task("acrobot")
     a = 0.5 * jnp.ones(task.action_size)
-    for transform in (with_substep_remat, with_small_dots,
-                      lambda t: with_small_dots(with_substep_remat(t))):
-        assert isinstance(transform(task), Task)  # a plain task stays plain
-        hidden = transform(TaskView(task, Uses(demo_states=True), "m"))
-        assert isinstance(hidden, TaskView)
-        s = jax.jit(hidden.env.step)(hidden.env.reset(jax.random.PRNGKey(0)), a)
-        assert np.isnan(s.reward) and s.metrics == {}
-        cut = transform(TaskView(task, Uses(true_reward=True), "m"))
-        assert np.isfinite(cut.env.reset(jax.random.PRNGKey(0)).reward)
-        assert float(jnp.abs(_step_tangent(cut.env, a)).sum()) == 0.0
-        free = transform(TaskView(task, Uses(sim_gradients=True), "m"))
-        assert float(jnp.abs(_step_tangent(free.env, a)).sum()) > 0.0
+
+    def transform(t):  # two transforms, each building a fresh env
+        return with_small_dots(with_substep_remat(t))
+
+    assert isinstance(transform(task), Task)  # a plain task stays plain
+    hidden = transform(TaskView(task, Uses(demo_states=True), "m"))
+    assert isinstance(hidden, TaskView)
+    s = jax.jit(hidden.env.step)(hidden.env.reset(jax.random.PRNGKey(0)), a)
+    assert np.isnan(s.reward) and s.metrics == {}
+    cut = transform(TaskView(task, Uses(true_reward=True), "m"))
+    assert np.isfinite(cut.env.reset(jax.random.PRNGKey(0)).reward)
+    assert float(jnp.abs(_step_tangent(cut.env, a)).sum()) == 0.0
+    free = transform(TaskView(task, Uses(sim_gradients=True), "m"))
+    assert float(jnp.abs(_step_tangent(free.env, a)).sum()) > 0.0
     limited = make_task("inverted_pendulum")
     free = without_joint_limits(TaskView(limited, Uses(), "m"))
     assert isinstance(free, TaskView) and free.env.unwrapped.sys.dof.limit is None
     assert np.isnan(free.env.reset(jax.random.PRNGKey(0)).reward)
+
+
+def test_a_view_runs_the_plan_only_for_a_method_that_differentiates_the_physics():
+    """A view handed a physics plan applies it where the method declares `sim_gradients`
+    (its own pipeline_step: the plan's rewritten step) and a copy made of it without joint
+    limits keeps the plan; a method that does not differentiate through the physics steps
+    the task itself, plan or not. Planted fault: `regated` dropping the plan."""
+    from tasks.core import without_joint_limits
+    from tasks.physics import plan_for
+    task = make_task("swimmer")  # joint limits to remove
+    plan = plan_for("swimmer", "cpu")
+    assert plan.small_dots
+    view = TaskView(task, Uses(sim_gradients=True), "m", plan)
+    assert view.plan == plan and "pipeline_step" in vars(view.env.unwrapped)
+    free = without_joint_limits(view)
+    assert free.plan == plan and "pipeline_step" in vars(free.env.unwrapped)
+    assert free.env.unwrapped.sys.dof.limit is None
+    other = TaskView(task, Uses(demo_states=True), "m", plan)
+    assert other.plan is None and "pipeline_step" not in vars(other.env.unwrapped)
+    assert "pipeline_step" not in vars(task.env.unwrapped)

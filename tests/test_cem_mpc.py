@@ -176,8 +176,8 @@ def test_tracking_never_prefers_ending_the_episode():
 
 
 def test_small_dots_plans_on_the_rewritten_physics_to_the_same_action():
-    """`small_dots=True` hands the planner `tasks.core.with_small_dots`'s copy of the physics
-    (gated like the task it was given); the plan is the same to float32 round-off."""
+    """`small_dots=True` hands the planner `tasks.physics.transforms.with_small_dots`'s copy of
+    the physics (gated like the task it was given); the plan is the same to float32 round-off."""
     from types import SimpleNamespace
 
     from bench.access import TaskView

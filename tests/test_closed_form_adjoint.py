@@ -8,9 +8,11 @@ import pytest
 
 from benchmarks.ild_speed import speed_setup, temp_bytes
 from methods.ild.config import ILDConfig
-from methods.ild.train import initial_state, make_update, rollout_physics
+from methods.ild.train import initial_state, make_update
 from tasks import make_task
-from tasks.core import open_loop, with_closed_form_adjoint, with_substep_remat
+from tasks.core import open_loop
+from tasks.physics import Plan, apply
+from tasks.physics.transforms import with_closed_form_adjoint, with_substep_remat
 
 
 def _states(n, key, q_max=7.0, qd_scale=4.0, a_max=1.5):
@@ -54,6 +56,8 @@ def test_acrobots_closed_form_step_is_braxs_step():
             np.testing.assert_allclose(g, w, rtol=1e-8, atol=1e-7, err_msg=name)
 
 
+@pytest.mark.slow  # a rollout gradient compiled twice; the default run checks the step's
+# VJP above and one ILD update through it below
 def test_closed_form_adjoint_is_braxs_rollout_and_gradient():
     """30 open-loop steps of 4 envs, loss on the matched states (world-frame pose and motion)
     and observations: the same values bit for bit (brax still computes them) and the same
@@ -83,7 +87,7 @@ def test_closed_form_adjoint_is_braxs_rollout_and_gradient():
     assert mem["cf"] < mem["remat"] < mem["brax"]
 
 
-def test_ild_update_with_closed_form_adjoint_is_the_default_update():
+def test_ild_update_through_the_closed_form_is_the_update_through_braxs_step():
     """One ILD update of B = 8 (truncation 10, per-step gradient normalization, clip, Adam)
     with `closed_form_adjoint` against the default (brax's reverse mode, substep remat): the
     same loss bit for bit and the same gradient norm and new parameters to round-off."""
@@ -92,9 +96,9 @@ def test_ild_update_with_closed_form_adjoint_is_the_default_update():
     policy, goals, norm, params, k = speed_setup(task, base)
     out = {}
     for cf in (False, True):
-        cfg = ILDConfig(num_envs=8, closed_form_adjoint=cf)
-        update, opt, _ = make_update(rollout_physics(task, cfg), policy, goals, norm, cfg, k[2])
-        out[cf] = jax.jit(update)(initial_state(params, opt, k[3], cfg), None)
+        phys = apply(task, Plan(closed_form_adjoint=cf))
+        update, opt, _ = make_update(phys, policy, goals, norm, base, k[2])
+        out[cf] = jax.jit(update)(initial_state(params, opt, k[3], base), None)
     (s0, m0), (s1, m1) = out[False], out[True]
     assert float(m0["train/loss"]) == float(m1["train/loss"])
     assert float(m1["grad/norm_raw"]) == pytest.approx(float(m0["grad/norm_raw"]), rel=1e-4)
@@ -106,8 +110,8 @@ def test_ild_update_with_closed_form_adjoint_is_the_default_update():
 def test_closed_form_adjoint_refuses_what_it_does_not_model():
     with pytest.raises(ValueError, match="hopper.*closed_form_adjoint"):
         with_closed_form_adjoint(make_task("hopper"))
-    with pytest.raises(ValueError, match="closed_form_adjoint and small_dots"):
-        ILDConfig(closed_form_adjoint=True, small_dots=True)
+    with pytest.raises(ValueError, match="closed_form_adjoint differentiates.*small_dots"):
+        Plan(closed_form_adjoint=True, small_dots=True)
     with pytest.raises(ValueError, match="already has its own physics step"):
         with_closed_form_adjoint(with_substep_remat(make_task("acrobot")))
     # a scene the equations do not describe (a damped elbow) is refused, not mis-modelled

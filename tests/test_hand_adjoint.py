@@ -1,8 +1,9 @@
 """`hand_adjoint`: brax's spring substep with the VJPs of six of its pieces (inverse inertia,
 joint forces and contact impulses moved to the links, integration, conversions to link and
-joint frames) written by hand (`tasks.spring_adjoint`). The same values and the same VJPs
+joint frames) written by hand (`tasks.physics.spring_adjoint`). The same values and the same VJPs
 as XLA's reverse mode of brax's code, piece by piece and (slow) for a whole control step,
 and clear refusals where it does not fit."""
+import dataclasses
 import functools
 
 import jax
@@ -12,13 +13,12 @@ import pytest
 from brax import com, kinematics
 from brax.spring import collisions, integrator, joints
 
-from methods.ild.config import ILDConfig
-from methods.ild.train import rollout_physics
 from tasks import make_task
-from tasks.core import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
-from tasks.spring_adjoint import (collisions_resolve, integrate, inv_inertia, joints_resolve,
-                                  only_hinges, planar_roots, rotary_joints, to_world,
-                                  world_to_joint)
+from tasks.physics import Plan, apply, plan_for
+from tasks.physics.transforms import hand_adjoint_refusal, with_hand_adjoint, with_lean_substeps
+from tasks.physics.spring_adjoint import (collisions_resolve, integrate, inv_inertia,
+                                          joints_resolve, only_hinges, planar_roots, rotary_joints,
+                                          to_world, world_to_joint)
 from tests.test_lean_substeps import _step_and_vjp
 
 
@@ -244,7 +244,7 @@ def _scene_forces_are_braxs(sys_, ps, **pieces):
             if w.size and float(jnp.max(jnp.abs(w))) > 0}
 
 
-@pytest.mark.parametrize("name", ["walker2d", "ant"])
+@pytest.mark.parametrize("name", [pytest.param("walker2d", marks=pytest.mark.slow), "ant"])
 def test_hinges_forces_are_braxs_one_dof_forces_and_their_vjp(name):
     """On a scene whose 1-dof joints are all hinges (its system a constant, as ILD traces it),
     `joints_resolve(..., hinges=True)` computes them by `hinge` (brax's `_one_dof` without
@@ -277,6 +277,8 @@ def test_planar_root_forces_are_braxs_three_dof_forces_and_their_vjp(name):
     assert SCENE_FORCES_READ <= _scene_forces_are_braxs(sys_, ps, hinges=True, planar=True)
 
 
+@pytest.mark.slow  # humanoid's joint VJPs compiled: ~1.5 minutes; the default run checks
+# the rotary forces' values (tests/test_spatial_links.py) and the hinges' VJP
 def test_rotary_forces_are_braxs_two_and_three_dof_forces_and_their_vjp():
     """On humanoid, whose 2- and 3-dof joints only turn (its system a constant, as ILD traces
     it), `joints_resolve(..., hinges=True, rotary=True)` computes their forces by
@@ -338,7 +340,7 @@ def test_only_hinges_reads_the_scene():
     assert seen == [False]
 
 
-@pytest.mark.parametrize("name", ["hopper", "ant"])
+@pytest.mark.parametrize("name", [pytest.param("hopper", marks=pytest.mark.slow), "ant"])
 def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
     """`collisions_resolve` on 8 states mid-motion pushed 0.1 down into the floor and moving
     down at 1 m/s (so every env has contacts whose impulses apply), with masses and inverse
@@ -368,22 +370,22 @@ def test_hand_collisions_resolve_is_braxs_and_its_vjp(name):
 
 
 def test_ild_trains_through_the_hand_written_step_where_asked():
-    """rollout_physics with `hand_adjoint` runs six custom VJPs (inverse inertia's, joint
+    """A plan with `hand_adjoint` runs six custom VJPs (inverse inertia's, joint
     forces to links', contact impulses to links', integration's, to-world's,
     world-to-joint's) in every substep of hopper's control step, lean or not; without it,
     none (traced, not compiled)."""
     task, ps, act = _states("hopper")  # any state: traced, not run
     ps1, a1 = jax.tree.map(lambda v: v[0], ps), act[0]
 
-    def custom_vjps(cfg):
-        step = rollout_physics(task, cfg).env.unwrapped.pipeline_step
+    def custom_vjps(plan):
+        step = apply(task, plan).env.unwrapped.pipeline_step
         return str(jax.make_jaxpr(step)(ps1, a1)).count("custom_vjp_call")
     n_frames = task.env.unwrapped._n_frames
     assert n_frames > 1
-    assert custom_vjps(ILDConfig(lean_substeps=True)) == 0
+    assert custom_vjps(Plan(lean_substeps=True)) == 0
     # six per substep body: the scan's and the last substep's (lean)
-    assert custom_vjps(ILDConfig(lean_substeps=True, hand_adjoint=True)) == 12
-    assert custom_vjps(ILDConfig(substep_remat=False, hand_adjoint=True)) == 6
+    assert custom_vjps(Plan(lean_substeps=True, hand_adjoint=True)) == 12
+    assert custom_vjps(Plan(substep_remat=False, hand_adjoint=True)) == 6
 
 
 @pytest.mark.slow  # two compilations of a control step's VJP: ~1 minute each
@@ -398,9 +400,8 @@ def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges, planar):
     want, want_grad = _step_and_vjp(
         with_lean_substeps(task).env.unwrapped.pipeline_step, ps, act)
     got, grad = _step_and_vjp(
-        rollout_physics(task, ILDConfig(lean_substeps=True, hand_adjoint=True,
-                                        hinge_forces=hinges, planar_root=planar)
-                        ).env.unwrapped.pipeline_step,
+        apply(task, Plan(lean_substeps=True, hand_adjoint=True, hinge_forces=hinges,
+                         planar_root=planar)).env.unwrapped.pipeline_step,
         ps, act)
     scale = max(float(jnp.max(jnp.abs(g))) for g in want_grad)
     assert scale > 1e-2
@@ -412,7 +413,7 @@ def test_hand_adjoint_step_is_braxs_step_and_gradient(hinges, planar):
 
 def test_hand_adjoint_refuses_what_it_does_not_model():
     """Not brax's spring backend (reacher: positional; acrobot: generalized; pointmass):
-    a ValueError naming the task and the field; with the closed-form adjoint: the config
+    a ValueError naming the task and the field; with the closed-form adjoint: the plan
     refuses the pair."""
     for name in ("reacher", "acrobot", "pointmass"):
         task = make_task(name)
@@ -420,79 +421,35 @@ def test_hand_adjoint_refuses_what_it_does_not_model():
         with pytest.raises(ValueError, match=f"{name}.*leave it False"):
             with_hand_adjoint(task)
     assert hand_adjoint_refusal(make_task("hopper")) is None
-    with pytest.raises(ValueError, match="closed_form_adjoint and hand_adjoint"):
-        ILDConfig(closed_form_adjoint=True, hand_adjoint=True)
+    with pytest.raises(ValueError, match="closed_form_adjoint differentiates.*hand_adjoint"):
+        Plan(closed_form_adjoint=True, hand_adjoint=True)
 
 
 def test_hinge_forces_refuses_what_it_does_not_model(monkeypatch):
-    """`hinge_forces` without `hand_adjoint`: the config refuses it; on a scene with a
+    """`hinge_forces` without `hand_adjoint`: the plan refuses it; on a scene with a
     sliding 1-dof joint (none of the spring tasks has one: `only_hinges` stands in):
     `with_hand_adjoint` names the task and the field."""
     with pytest.raises(ValueError, match="hinge_forces is a piece of hand_adjoint"):
-        ILDConfig(hinge_forces=True)
-    assert ILDConfig(hand_adjoint=True, hinge_forces=True).hinge_forces
-    monkeypatch.setattr("tasks.spring_adjoint.only_hinges", lambda sys: False)
+        Plan(hinge_forces=True)
+    assert Plan(hand_adjoint=True, hinge_forces=True).hinge_forces
+    monkeypatch.setattr("tasks.physics.spring_adjoint.only_hinges", lambda sys: False)
     with pytest.raises(ValueError, match="'hopper' has 1-dof joints that slide.*hinge_forces"):
         with_hand_adjoint(make_task("hopper"), hinges=True)
 
 
 def test_planar_root_and_rotary_joints_refuse_what_they_do_not_model():
-    """`planar_root` or `rotary_joints` without `hand_adjoint`: the config refuses it,
+    """`planar_root` or `rotary_joints` without `hand_adjoint`: the plan refuses it,
     naming the field; on a scene without planar roots (ant) or without joints
     that only turn (hopper, ant), `with_hand_adjoint` names the task and the field."""
     for field in ("planar_root", "rotary_joints"):
         with pytest.raises(ValueError, match=f"{field} is a piece of hand_adjoint"):
-            ILDConfig(**{field: True})
-        assert getattr(ILDConfig(hand_adjoint=True, **{field: True}), field)
+            Plan(**{field: True})
+        assert getattr(Plan(hand_adjoint=True, **{field: True}), field)
     with pytest.raises(ValueError, match="'ant' has no planar root.*planar_root"):
         with_hand_adjoint(make_task("ant"), planar=True)
     for name in ("hopper", "ant"):
         with pytest.raises(ValueError, match=f"'{name}' has no 2- or 3-dof.*rotary_joints"):
             with_hand_adjoint(make_task(name), rotary=True)
-
-
-def test_hand_adjoint_is_the_default_wherever_a_task_allows_it():
-    """ILD trains with the hand-written VJPs on every task whose physics they
-    model (brax's spring backend) and on no other: TASK_OVERRIDES turns `hand_adjoint` on
-    exactly where `hand_adjoint_refusal` has no objection, on top of lean substeps (merged,
-    not replaced); `hinge_forces` too, on exactly the scenes among them whose
-    1-dof joints are all hinges (`only_hinges`: all four), and `planar_root`
-    and `rotary_joints` on exactly the scenes that have those joints (`planar_roots`:
-    hopper, walker2d; `rotary_joints`: humanoid). Turning `hand_adjoint` off takes them off
-    with it; asking for `hinge_forces` without it is refused by name."""
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import (HAND_ADJOINT_TASKS, HINGE_FORCES_TASKS, PLANAR_ROOT_TASKS,
-                                    ROTARY_JOINTS_TASKS, TASK_OVERRIDES)
-    from tasks.registry import TASKS
-    from tasks.spring_adjoint import only_hinges
-    on = {name for name, over in TASK_OVERRIDES.items() if over.get("hand_adjoint")}
-    allowed = {name for name in TASKS if hand_adjoint_refusal(make_task(name)) is None}
-    assert set(HAND_ADJOINT_TASKS) == on == allowed == {"hopper", "walker2d", "ant",
-                                                        "humanoid"}
-    hinged = {name for name, over in TASK_OVERRIDES.items() if over.get("hinge_forces")}
-    assert set(HINGE_FORCES_TASKS) == hinged == {
-        name for name in allowed if only_hinges(make_task(name).env.unwrapped.sys)}
-    planar = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_root")}
-    assert set(PLANAR_ROOT_TASKS) == planar == {"hopper", "walker2d"} == {
-        name for name in allowed if planar_roots(make_task(name).env.unwrapped.sys)}
-    rotary = {name for name, over in TASK_OVERRIDES.items() if over.get("rotary_joints")}
-    assert set(ROTARY_JOINTS_TASKS) == rotary == {"humanoid"} == {
-        name for name in allowed if rotary_joints(make_task(name).env.unwrapped.sys)}
-    ild = get_method("ild")
-    ant = build_config(ild, "ant", "cpu", {}, platform="cpu")  # a GPU's has it off
-    assert ant.hand_adjoint and ant.hinge_forces and ant.lean_substeps and ant.num_envs == 32
-    reacher = build_config(ild, "reacher", "cpu", {})
-    assert reacher.hand_adjoint is False and reacher.hinge_forces is False
-    off = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "false"})
-    assert off.hand_adjoint is False and off.hinge_forces is False
-    # --set hand_adjoint=false alone takes the task's hinge_forces with it (the method's
-    # `requires`); asked for beside it, hinge_forces is refused by name
-    alone = build_config(ild, "hopper", "cpu", {"hand_adjoint": "false"})
-    assert alone == off and alone.lean_substeps and not alone.planar_root
-    human = build_config(ild, "humanoid", "cpu", {"hand_adjoint": "false"})
-    assert not (human.hand_adjoint or human.hinge_forces or human.rotary_joints)
-    with pytest.raises(ValueError, match="hinge_forces is a piece of hand_adjoint"):
-        build_config(ild, "hopper", "cpu", {"hand_adjoint": "false", "hinge_forces": "true"})
 
 
 def _saved(fn, *args) -> list[str]:
@@ -513,7 +470,7 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
     the three frames composed from them; five 3-vectors: offsets and motions) and the two
     inv_inertia's does (the rotation and its product with the inertia frames'), every one
     state-dependent, none of the system's constants. Tracing only."""
-    from tasks.spring_adjoint import SAVED_RESIDUALS, step
+    from tasks.physics.spring_adjoint import SAVED_RESIDUALS, step
     task, ps, act = _states("ant", batch=1, steps=1)
     sys_ = task.env.unwrapped.sys
     ps1, act1 = jax.tree.map(lambda a: a[0], ps), act[0]
@@ -534,60 +491,9 @@ def test_saved_residuals_saves_what_world_to_joint_and_inv_inertia_name():
     assert sorted(plain) == sorted(s for s in saved if "named '" not in s)
 
 
-def test_saved_residuals_is_on_for_ant_and_humanoid_and_a_piece_of_hand_adjoint():
-    """`saved_residuals` without `hand_adjoint` is refused by name. Ant and humanoid
-    train with it and no other task does; where a
-    task has hand_adjoint, `--set saved_residuals=true` turns it on and `=false` off, and
-    `--set hand_adjoint=false` takes it off with the rest (the method's `requires`)."""
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import SAVED_RESIDUALS_TASKS, TASK_OVERRIDES
+def test_saved_residuals_is_a_piece_of_hand_adjoint():
     with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
-        ILDConfig(saved_residuals=True)
-    assert SAVED_RESIDUALS_TASKS == ("ant", "humanoid")
-    assert sorted(t for t, over in TASK_OVERRIDES.items()
-                  if over.get("saved_residuals")) == ["ant", "humanoid"]
-    ild = get_method("ild")
-    for task in SAVED_RESIDUALS_TASKS:
-        on = build_config(ild, task, "cpu", {}, platform="cpu")  # a GPU's has it off
-        assert on.saved_residuals and on.hand_adjoint and on.substep_remat
-        assert not build_config(ild, task, "cpu", {"saved_residuals": "false"},
-                                platform="cpu").saved_residuals
-        off = build_config(ild, task, "cpu", {"hand_adjoint": "false"})
-        assert not off.saved_residuals and not off.hand_adjoint
-    assert not build_config(ild, "hopper", "cpu", {}).saved_residuals
-    assert build_config(ild, "hopper", "cpu", {"saved_residuals": "true"}).saved_residuals
-    with pytest.raises(ValueError, match="saved_residuals is a piece of hand_adjoint"):
-        build_config(ild, "ant", "cpu", {"hand_adjoint": "false", "saved_residuals": "true"})
-
-
-def test_on_a_gpu_ant_and_humanoid_train_through_xlas_reverse_mode():
-    """PLATFORM_OVERRIDES: on 'gpu' ant's and humanoid's config has hand_adjoint off and with
-    it its pieces (hinge_forces, saved_residuals, rotary_joints), and their spatial_links
-    off, the rest of the task's overrides kept; on 'cpu' they stay on; `--set
-    hand_adjoint=true` on a GPU brings the pieces back; every other task's config is the
-    same on both platforms."""
-    import dataclasses as dc
-
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import TASK_OVERRIDES
-    ild = get_method("ild")
-    for task, pieces, also in (
-            ("ant", ("hinge_forces", "saved_residuals"), ("spatial_links",)),
-            ("humanoid", ("hinge_forces", "saved_residuals", "rotary_joints"),
-             ("spatial_links",))):
-        cpu = build_config(ild, task, "paper", platform="cpu")
-        gpu = build_config(ild, task, "paper", platform="gpu")
-        assert cpu.hand_adjoint and all(getattr(cpu, f) for f in pieces + also)
-        assert not gpu.hand_adjoint and not any(getattr(gpu, f) for f in pieces + also)
-        assert gpu.lean_substeps and gpu.substep_remat and gpu.num_envs == 360
-        assert dc.replace(gpu, hand_adjoint=True, **{f: True for f in pieces + also}) == cpu
-        back = build_config(ild, task, "paper", {"hand_adjoint": "true"}, platform="gpu")
-        assert back == dc.replace(cpu, **{f: False for f in also})  # spatial_links
-        # (CPU-measured) stays off on a GPU
-    for task in TASK_OVERRIDES:
-        if task not in ("ant", "humanoid"):
-            assert (build_config(ild, task, "cpu", platform="gpu")
-                    == build_config(ild, task, "cpu", platform="cpu")), task
+        Plan(saved_residuals=True)
 
 
 @pytest.mark.slow  # two compilations of ant's control-step VJP: about 2 minutes on one core
@@ -597,15 +503,12 @@ def test_saved_residuals_is_the_same_step_and_gradient_to_round_off():
     a function of it in the incoming state and the actions agree to float32 round-off
     (saving a residual rather than computing it again is the same function; XLA fuses the
     two programs differently)."""
-    from benchmarks.ild_speed import task_config
     task, ps, act = _states("ant")
     got = []
     for on in (False, True):
-        # hand_adjoint named: a GPU's ant config has it off (PLATFORM_OVERRIDES)
-        cfg = task_config("ant", 8, {"hand_adjoint": True, "saved_residuals": on})
-        assert cfg.hand_adjoint and cfg.substep_remat and cfg.saved_residuals is on
-        got.append(_step_and_vjp(rollout_physics(task, cfg).env.unwrapped.pipeline_step, ps,
-                                 act))
+        plan = dataclasses.replace(plan_for("ant", "cpu"), saved_residuals=on)
+        assert plan.hand_adjoint and plan.substep_remat
+        got.append(_step_and_vjp(apply(task, plan).env.unwrapped.pipeline_step, ps, act))
     (want_v, want_g), (got_v, got_g) = got
     for w, g in zip(want_v + tuple(want_g), got_v + tuple(got_g), strict=True):
         scale = float(jnp.max(jnp.abs(w)))

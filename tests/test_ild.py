@@ -14,7 +14,7 @@ from methods.common.policy import ObsNorm, TanhGaussianPolicy
 from methods.ild.config import ILDConfig
 from methods.ild.losses import (chamfer_alpha, multi_demo, nearest, normalize_grad,
                                 pairwise_distance, stepwise_l2)
-from methods.ild.train import StateNorm, make_rollout_loss, rollout_physics
+from methods.ild.train import StateNorm, make_rollout_loss
 from tasks import make_task
 from tasks.demo import load_demo
 
@@ -547,6 +547,7 @@ def test_masked_states_neither_deviate_nor_cover():
     assert float(stepwise_l2(x, y, "sq").loss) == 48.0 ** 2 / 3  # unmasked
 
 
+@pytest.mark.slow  # benchmark tool: every row of it compiled
 def test_speed_benchmark_reports_every_part_and_its_ratios():
     """The benchmark's rows on pointmass (no APG: brax's trainer wants a brax env): the
     per-step decomposition rows exist and the ratios are the rows' own quotients."""
@@ -793,47 +794,29 @@ def test_inverted_pendulum_runs_full_bptt_by_task_override():
     ild = get_method("ild")
     assert build_config(ild, "inverted_pendulum", "cpu").truncation == 128
     assert build_config(ild, "hopper", "cpu").truncation == 10
-    # since version 5 every task rematerializes brax's substeps (the default), none whole
-    # steps: ant's remat override is gone (config.py)
-    for name in ("ant", "humanoid", "hopper"):
-        for preset in ("cpu", "paper"):
-            cfg = build_config(ild, name, preset)
-            assert cfg.substep_remat and not cfg.remat
 
 
-def test_acrobot_trains_through_its_closed_form_and_swimmer_with_small_dots_by_default(
-        monkeypatch):
-    """The speed overrides of methods/ild/config.py: acrobot's resolved config, in either preset,
-    differentiates through its closed-form step (and keeps full BPTT), swimmer's computes its
-    step's small products as sums on top of substep remat; no other brax task takes either,
-    a user's --set still turns them off, and asking for both rewrites on acrobot is a
-    ConfigError naming the two fields. rollout_physics builds exactly those physics."""
-    import importlib
-
-    from bench.plugins import ConfigError, build_config, get_method
-    train = importlib.import_module("methods.ild.train")  # the module, not the package's train
-    ild = get_method("ild")
-    for preset in ("cpu", "paper"):
-        acro, swim = build_config(ild, "acrobot", preset), build_config(ild, "swimmer", preset)
-        assert acro.closed_form_adjoint and not acro.small_dots and acro.truncation == 128
-        assert swim.small_dots and swim.substep_remat and not swim.closed_form_adjoint
-        for name in ("ant", "hopper", "humanoid", "reacher", "walker2d", "inverted_pendulum",
-                     "pointmass", "cloth"):
-            cfg = build_config(ild, name, preset)
-            assert not cfg.closed_form_adjoint and not cfg.small_dots, name
-    assert not build_config(ild, "acrobot", "cpu", {"closed_form_adjoint": "false"}
-                            ).closed_form_adjoint
-    assert not build_config(ild, "swimmer", "cpu", {"small_dots": "false"}).small_dots
-    with pytest.raises(ConfigError, match="closed_form_adjoint and small_dots"):
-        build_config(ild, "acrobot", "cpu", {"small_dots": "true"})
+def test_a_plan_applies_its_rewrites_in_order_and_refuses_conflicts(monkeypatch):
+    """`tasks.physics.apply` builds exactly the rewrites a plan names, in the order they
+    compose: acrobot's plan runs the closed-form backward alone (it never reads brax's
+    substeps), swimmer's rematerializes the substeps and then computes their small products
+    as sums, brax's step as it is (`REFERENCE`) calls none. A plan with both whole-step and
+    small-product rewrites is an error naming both. Planted fault: `apply` ignoring a field
+    or applying small_dots before the rebuilt substep loop (which refuses such a copy)."""
+    from tasks.physics import REFERENCE, Plan, apply, plan_for
+    from tasks.physics import transforms
     calls = []
     for name in ("with_closed_form_adjoint", "with_small_dots", "with_substep_remat"):
-        monkeypatch.setattr(train, name, lambda t, name=name: calls.append(name) or t)
-    train.rollout_physics(make_task("acrobot"), build_config(ild, "acrobot", "cpu"))
+        monkeypatch.setattr(transforms, name, lambda t, name=name: calls.append(name) or t)
+    apply(make_task("acrobot"), plan_for("acrobot", "cpu"))
     assert calls == ["with_closed_form_adjoint"]
     calls.clear()
-    train.rollout_physics(make_task("swimmer"), build_config(ild, "swimmer", "cpu"))
+    apply(make_task("swimmer"), plan_for("swimmer", "cpu"))
     assert calls == ["with_substep_remat", "with_small_dots"]
+    calls.clear()
+    assert apply(make_task("swimmer"), REFERENCE) is make_task("swimmer") and calls == []
+    with pytest.raises(ValueError, match="closed_form_adjoint differentiates.*small_dots"):
+        Plan(closed_form_adjoint=True, small_dots=True)
 
 
 @pytest.mark.slow
@@ -931,10 +914,9 @@ def test_ild_joint_limits_off_differentiates_through_the_limitless_copy(monkeypa
     for limits in (True, False):
         with pytest.raises(RuntimeError, match="stop after"):
             ild_train.train(task, demo, _cfg(joint_limits=limits, bc_updates=0), None, 0)
-    # both are copies (substep remat, the default since version 5): with limits the copy
-    # shares the task's own system, without them it has a limitless one
-    assert seen[0] is not task and seen[1] is not task
-    assert seen[0].env.unwrapped.sys is task.env.unwrapped.sys
+    # with limits the task as handed (its physics plan is the view's business), without
+    # them a copy with a limitless system
+    assert seen[0] is task and seen[1] is not task
     assert seen[1].env.unwrapped.sys.dof.limit is None
     assert task.env.unwrapped.sys.dof.limit is not None
     point = make_task("pointmass")
@@ -969,13 +951,16 @@ def test_probe_finite_differences_match_the_gradient_where_the_loss_is_smooth():
             jax.random.PRNGKey(0), ObsNorm.fit(jnp.zeros((2, task.obs_size))))["net"]))
 
 
+@pytest.mark.slow  # two step gradients compiled; the default run checks substep remat
+# inside the lean and hand-adjoint substeps (tests/test_lean_substeps.py)
 def test_substep_remat_computes_the_same_physics_and_gradient():
     """with_substep_remat (substep_remat=True) checkpoints each brax substep inside a control
     step: the same states and the same gradient through 3 steps (acrobot: brax's generalized
     pipeline, 4 substeps per step), to float32 round-off, with less of the backward pass's
     working memory; the registry's cached task keeps brax's own pipeline_step."""
     from benchmarks.ild_speed import temp_bytes
-    from tasks.core import open_loop, with_substep_remat
+    from tasks.core import open_loop
+    from tasks.physics.transforms import with_substep_remat
     task = make_task("acrobot")
     sub = with_substep_remat(task)
     assert sub.env.unwrapped is not task.env.unwrapped
@@ -1002,7 +987,8 @@ def test_substep_remat_computes_the_same_physics_and_gradient():
 
 
 def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks():
-    from tasks.core import with_substep_remat, without_joint_limits
+    from tasks.core import without_joint_limits
+    from tasks.physics.transforms import with_substep_remat
     swimmer = make_task("swimmer")
     assert swimmer.env.unwrapped.sys.dof.limit is not None
     both = with_substep_remat(without_joint_limits(swimmer))
@@ -1012,23 +998,19 @@ def test_substep_remat_keeps_a_joint_limit_free_copy_and_refuses_non_brax_tasks(
         with_substep_remat(make_task("pointmass"))
 
 
-def test_substep_remat_is_the_default_where_brax_has_substeps():
-    """Since version 5 ILD's training rollouts rematerialize each brax substep by default:
-    on hopper the default config's physics is a with_substep_remat copy (its own
-    pipeline_step, checkpointed), `substep_remat=False` keeps brax's; pointmass has no
-    substep loop, so the default leaves its task as it is instead of refusing it."""
-    from bench.plugins import get_method
-    from methods.ild.config import TASK_OVERRIDES
+def test_plan_rematerializes_brax_substeps_and_leaves_other_steps_alone():
+    """`Plan()` rematerializes each brax substep: on hopper its physics is a
+    with_substep_remat copy (its own pipeline_step, checkpointed); `REFERENCE` keeps brax's;
+    pointmass has no substep loop, so the plan leaves its task as it is instead of refusing
+    it."""
     from tasks.core import has_substep_loop
-    assert ILDConfig().substep_remat is True
+    from tasks.physics import REFERENCE, Plan, apply
     hopper, pointmass = make_task("hopper"), make_task("pointmass")
     assert has_substep_loop(hopper) and not has_substep_loop(pointmass)
-    phys = rollout_physics(hopper, ILDConfig())
+    phys = apply(hopper, Plan())
     assert phys is not hopper and "pipeline_step" in vars(phys.env.unwrapped)
-    assert rollout_physics(hopper, ILDConfig(substep_remat=False)) is hopper
-    assert rollout_physics(pointmass, ILDConfig()) is pointmass
-    assert "remat" not in TASK_OVERRIDES["ant"]  # its whole-step remat (versions 1-4) is gone
-    assert get_method("ild").version == "5"
+    assert apply(hopper, REFERENCE) is hopper
+    assert apply(pointmass, Plan()) is pointmass
 
 
 def test_speed_benchmark_runs_the_rows_asked_for():
@@ -1047,13 +1029,19 @@ def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeyp
     pointmass's the `ild` row's own config, whose timing it then reports again rather than
     compiling the same update twice."""
     from benchmarks import ild_speed as benchmark
+    from tasks.physics import Plan
+    Setup = benchmark.Setup
     acro = benchmark.task_config("acrobot", 8)
-    assert acro == ILDConfig(num_envs=8, truncation=128, closed_form_adjoint=True)
-    assert benchmark.task_config("swimmer", 8) == ILDConfig(num_envs=8, small_dots=True)
-    assert benchmark.task_config("hopper", 8) == ILDConfig(
-        num_envs=8, lean_substeps=True, hand_adjoint=True, hinge_forces=True, planar_root=True,
-        planar_adjoint=True, planar_links=True)
-    assert benchmark.task_config("pointmass", 8) == ILDConfig(num_envs=8)
+    assert acro == Setup(ILDConfig(num_envs=8, truncation=128), Plan(closed_form_adjoint=True))
+    assert benchmark.task_config("swimmer", 8) == Setup(ILDConfig(num_envs=8),
+                                                        Plan(small_dots=True))
+    assert benchmark.task_config("hopper", 8) == Setup(ILDConfig(num_envs=8), Plan(
+        lean_substeps=True, hand_adjoint=True, hinge_forces=True, planar_root=True,
+        planar_adjoint=True, planar_links=True))
+    assert benchmark.task_config("pointmass", 8) == Setup(ILDConfig(num_envs=8))
+    # turning hand_adjoint off turns its pieces off with it
+    xla = benchmark.task_config("hopper", 8, {"hand_adjoint": "false"})
+    assert not (xla.hand_adjoint or xla.hinge_forces or xla.planar_root) and xla.lean_substeps
     compiled = []
     real = benchmark.make_update
     monkeypatch.setattr(benchmark, "make_update",
@@ -1067,6 +1055,7 @@ def test_speed_benchmark_ild_task_row_is_the_config_the_task_trains_with(monkeyp
                                                         / rows[0]["seconds"], 3)
 
 
+@pytest.mark.slow  # benchmark tool
 def test_speed_benchmark_times_apg_on_small_dots_physics_alone(apg_timed):
     """'dots' is four rows, each a group of its own: a GPU call times ild_substep_dots in the
     ILD process and apg_dots in the APG process. apg_dots alone runs brax's APG on the
@@ -1165,6 +1154,7 @@ def test_paired_summary_takes_medians_over_rounds_and_the_fastest_rounds_ratio(t
     assert "--variant is required" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # benchmark tool
 def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     """benchmarks.ild_paired: every variant is timed once between two of APG's epochs and
     each round's ratio is APG's seconds per update over the variant's, from that round; APG's
@@ -1229,7 +1219,7 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
              r"\['closed_form_adjoint'\] set closed_form_adjoint and \['chunk=2'\]")):
         with pytest.raises(ValueError, match=match):  # refused before any task is built
             paired.run("no_such_task", variants, batch=4, rounds=1, repeats=1)
-    base = paired.ILDConfig(num_envs=4)
+    base = paired.Setup(paired.ILDConfig(num_envs=4))
     assert paired.apg_physics({v: paired.parse_variant(v, 4) for v in
                                ("small_dots", "small_dots,chunk=2")}, base) == "small_dots"
     assert paired.apg_physics({v: paired.parse_variant(v, 4) for v in
@@ -1238,11 +1228,13 @@ def test_paired_times_each_variant_between_apg_epochs(monkeypatch):
     assert paired.apg_physics({"chunk=2": paired.parse_variant("chunk=2", 4)}, base) == "brax"
     # 'task' starts from the task's TASK_OVERRIDES; --apg-physics brax allows any mix and
     # times brax's APG as shipped
-    assert paired.parse_variant("task", 4, "acrobot") == paired.ILDConfig(
-        num_envs=4, truncation=128, closed_form_adjoint=True)
-    assert paired.parse_variant("task,chunk=2", 4, "swimmer") == paired.ILDConfig(
-        num_envs=4, small_dots=True, chunk=2)
-    assert paired.parse_variant("chunk=2", 4, "acrobot") == paired.ILDConfig(num_envs=4, chunk=2)
+    from tasks.physics import Plan
+    assert paired.parse_variant("task", 4, "acrobot") == paired.Setup(
+        paired.ILDConfig(num_envs=4, truncation=128), Plan(closed_form_adjoint=True))
+    assert paired.parse_variant("task,chunk=2", 4, "swimmer") == paired.Setup(
+        paired.ILDConfig(num_envs=4, chunk=2), Plan(small_dots=True))
+    assert paired.parse_variant("chunk=2", 4, "acrobot") == paired.Setup(
+        paired.ILDConfig(num_envs=4, chunk=2))
     mixed = {v: paired.parse_variant(v, 4, "acrobot") for v in ("task", "chunk=2")}
     with pytest.raises(ValueError, match="--apg-physics brax"):
         paired.apg_physics(mixed, base)
@@ -1272,7 +1264,7 @@ def test_kernel_grad_group_is_the_same_gradient_to_round_off_on_every_brax_task(
     for group in (1, 8):
         cfg = task_config(task_name, 8, {"kernel_grad_group": group})
         policy, goals, norm, params, k = speed_setup(task, cfg)
-        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        loss = make_rollout_loss(cfg.physics(task), policy, goals, norm, cfg.config)
         init_keys = jax.random.split(k[2], 8)
         out[group] = jax.jit(jax.value_and_grad(
             lambda p: loss(p, k[3], init_keys)[0]))(params)

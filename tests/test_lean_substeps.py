@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from methods.ild.config import ILDConfig
-from methods.ild.train import rollout_physics
 from tasks import make_task
-from tasks.core import (lean_substeps_refusal, open_loop, with_lean_substeps,
-                        with_substep_remat)
+from tasks.physics import Plan, apply
+from tasks.core import open_loop
+from tasks.physics.transforms import lean_substeps_refusal, with_lean_substeps, with_substep_remat
 
 
 def _rollout_and_grad(task, steps=12, batch=4):
@@ -70,6 +70,8 @@ def test_lean_substeps_are_braxs_step_and_gradient(name):
             np.testing.assert_allclose(g, w, rtol=0, atol=1e-5 * scale)
 
 
+@pytest.mark.slow  # a rollout gradient compiled twice; the default run checks the
+# control step's value and gradient above
 def test_lean_substeps_are_braxs_rollout_and_gradient():
     """12 control steps of 4 hopper envs from reset through ILD's default physics (each
     substep checkpointed) and through the lean copy: the loss (a smooth function of every
@@ -131,46 +133,22 @@ def test_lean_substeps_refuse_scenes_that_need_every_substeps_coordinates():
         with_lean_substeps(with_substep_remat(make_task("hopper")))
 
 
-def test_lean_substeps_config_and_rollout_physics(monkeypatch):
-    """The field's default is off; on, rollout_physics builds the lean copy, checkpointed as
-    `substep_remat` says, in place of `with_substep_remat`; with the closed-form adjoint
-    (which replaces brax's step) it is a ConfigError naming both fields."""
-    import importlib
-
-    from bench.plugins import ConfigError, build_config, get_method
-    train = importlib.import_module("methods.ild.train")
-    assert ILDConfig().lean_substeps is False
-    with pytest.raises(ConfigError, match="closed_form_adjoint and lean_substeps"):
-        build_config(get_method("ild"), "acrobot", "cpu", {"lean_substeps": "true"})
+def test_a_plan_with_lean_substeps_builds_the_lean_copy(monkeypatch):
+    """On, `apply` builds the lean copy, checkpointed as `substep_remat` says, in place of
+    `with_substep_remat`; with the closed-form adjoint (which replaces brax's step) the plan
+    is refused naming both fields."""
+    from tasks.physics import Plan, apply, transforms
+    with pytest.raises(ValueError, match="closed_form_adjoint differentiates.*lean_substeps"):
+        Plan(closed_form_adjoint=True, lean_substeps=True)
     calls = []
-    monkeypatch.setattr(train, "with_lean_substeps",
+    monkeypatch.setattr(transforms, "with_lean_substeps",
                         lambda t, remat: calls.append(("lean", remat)) or t)
-    monkeypatch.setattr(train, "with_substep_remat", lambda t: calls.append("remat") or t)
+    monkeypatch.setattr(transforms, "with_substep_remat", lambda t: calls.append("remat") or t)
     hopper = make_task("hopper")
-    train.rollout_physics(hopper, ILDConfig(lean_substeps=True))
-    train.rollout_physics(hopper, ILDConfig(lean_substeps=True, substep_remat=False))
-    train.rollout_physics(hopper, ILDConfig())
+    apply(hopper, Plan(lean_substeps=True))
+    apply(hopper, Plan(lean_substeps=True, substep_remat=False))
+    apply(hopper, Plan())
     assert calls == [("lean", True), ("lean", False), "remat"]
-
-
-def test_lean_substeps_are_the_default_wherever_a_task_allows_them():
-    """ILD trains with lean substeps on every task that can take them (brax
-    spring or positional physics, motor actuators) and on no other: TASK_OVERRIDES turns it
-    on exactly where `lean_substeps_refusal` has no objection, and `build_config` gives those
-    tasks a config with it (inverted_pendulum keeping its full BPTT)."""
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import LEAN_SUBSTEP_TASKS, TASK_OVERRIDES
-    from tasks.registry import TASKS
-    lean = {name for name, over in TASK_OVERRIDES.items() if over.get("lean_substeps")}
-    allowed = {name for name in TASKS if lean_substeps_refusal(make_task(name)) is None}
-    assert set(LEAN_SUBSTEP_TASKS) == lean == allowed == {
-        "hopper", "walker2d", "ant", "humanoid", "reacher", "inverted_pendulum"}
-    ild = get_method("ild")
-    assert build_config(ild, "ant", "cpu", {}).lean_substeps is True
-    ip = build_config(ild, "inverted_pendulum", "cpu", {})
-    assert ip.lean_substeps is True and ip.truncation == 128  # merged, not replaced
-    assert build_config(ild, "swimmer", "cpu", {}).lean_substeps is False
-    assert build_config(ild, "hopper", "cpu", {"lean_substeps": "false"}).lean_substeps is False
 
 
 def test_speed_benchmark_lean_rows(apg_timed):
@@ -184,16 +162,17 @@ def test_speed_benchmark_lean_rows(apg_timed):
     rows = benchmark.run("hopper", batch=2, repeats=3, only=("apg", "apg_lean"))
     assert [r["what"] for r in rows] == ["apg", "apg_lean"] and timed == [False, True]
     assert benchmark.run("acrobot", batch=2, repeats=1, only=("lean",)) == []
-    phys = rollout_physics(make_task("hopper"), ILDConfig(lean_substeps=True))
+    phys = apply(make_task("hopper"), Plan(lean_substeps=True))
     assert "pipeline_step" in vars(phys.env.unwrapped)
 
 
+@pytest.mark.slow  # benchmark tool
 def test_paired_times_lean_variants_against_apg_on_the_same_lean_physics():
     """benchmarks.ild_paired: variants that all set lean_substeps time APG on lean substeps, and
     APG's copy is not checkpointed (brax's APG does not rematerialize; ILD's does, as its
     default substep_remat says); a mix of lean and not is refused unless APG is brax's."""
     from benchmarks import ild_paired as paired
-    base = ILDConfig(num_envs=32)
+    base = paired.Setup(ILDConfig(num_envs=32))
     lean = {v: paired.parse_variant(v, 32) for v in ("lean_substeps", "lean_substeps,chunk=4")}
     assert paired.apg_physics(lean, base) == "lean_substeps"
     mixed = {v: paired.parse_variant(v, 32) for v in ("lean_substeps", "substep_remat")}
@@ -208,4 +187,4 @@ def test_paired_times_lean_variants_against_apg_on_the_same_lean_physics():
             s.pipeline_state, jnp.zeros(task.action_size))).count("remat")
     hopper = make_task("hopper")
     assert remats(paired.apg_env(hopper, "lean_substeps")) == 0
-    assert remats(rollout_physics(hopper, ILDConfig(lean_substeps=True))) == 2  # both bodies
+    assert remats(apply(hopper, Plan(lean_substeps=True))) == 2  # both bodies

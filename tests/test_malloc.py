@@ -115,6 +115,7 @@ def _updates(tunables: str | None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # a hopper update compiled in two processes
 @pytest.mark.skipif(malloc.env_with_hugepages({}) is None,
                     reason="glibc's huge-page tunable cannot act on this machine")
 def test_hugepages_spare_an_update_its_page_faults_and_change_no_number():

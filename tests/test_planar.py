@@ -1,5 +1,5 @@
 """`planar_adjoint`: brax's positional control step written over the plane a scene moves in
-(`tasks.planar`), differentiated in place of brax's reverse mode. The same values and
+(`tasks.physics.planar`), differentiated in place of brax's reverse mode. The same values and
 derivative as brax's, step by step and through a rollout; clear refusals where a scene
 leaves the plane."""
 import dataclasses
@@ -11,12 +11,13 @@ import pytest
 from brax import com, kinematics
 from brax.positional import pipeline
 
-import tasks.planar as planar
+import tasks.physics.planar as planar
 from benchmarks.ild_speed import speed_setup, task_config
-from methods.ild.config import ILDConfig
-from methods.ild.train import make_rollout_loss, rollout_physics
+from methods.ild.train import make_rollout_loss
 from tasks import make_task
-from tasks.core import Task, planar_adjoint_refusal, with_planar_adjoint
+from tasks.physics import Plan
+from tasks.core import Task
+from tasks.physics.transforms import planar_adjoint_refusal, with_planar_adjoint
 from tests.test_hand_adjoint import _states
 
 
@@ -177,7 +178,7 @@ def _rollout_gradients(steps: int, a: dict, b: dict, name: str = "inverted_pendu
     for over in (a, b):
         cfg = task_config(name, 8, over)
         policy, goals, norm, params, k = speed_setup(task, cfg)
-        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        loss = make_rollout_loss(cfg.physics(task), policy, goals, norm, cfg.config)
         init_keys = jax.random.split(k[2], 8)
         out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
     return out
@@ -200,6 +201,8 @@ def test_planar_adjoint_is_the_same_rollout_and_gradient():
     _same_gradient(want, got, 1e-5)
 
 
+@pytest.mark.slow  # two rollout gradients compiled: ~2 minutes; the default run checks the
+# planar rollout gradient on inverted_pendulum above
 def test_reacher_planar_adjoint_is_the_same_rollout_and_nearly_its_gradient():
     """reacher as it trains (planar_adjoint with planar_normal_gravity, truncation 10) against
     it without planar_adjoint (positional_joints' backward, gravity included), over 16 steps:
@@ -244,7 +247,7 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
     with pytest.raises(ValueError, match="'hopper' runs 'spring' physics; planar_normal_grav"):
         with_planar_adjoint(make_task("hopper"), drop_normal_gravity=True)
     with pytest.raises(ValueError, match="set planar_adjoint True or planar_normal_gravity"):
-        ILDConfig(planar_normal_gravity=True)
+        Plan(planar_normal_gravity=True)
     task = make_task("inverted_pendulum")
     assert planar_adjoint_refusal(task) is None
     sys = task.env.unwrapped.sys
@@ -256,9 +259,9 @@ def test_planar_adjoint_refuses_what_it_does_not_model():
     why = planar.planar_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
     assert why.startswith("a substep moves it out of the x-z plane (link 0's"), why
     for other in ("closed_form_adjoint", "small_dots"):
-        with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
-            ILDConfig(planar_adjoint=True, **{other: True})
-    ILDConfig(planar_adjoint=True, lean_substeps=True, positional_joints=True)
+        with pytest.raises(ValueError, match=f"(?=.*planar_adjoint)(?=.*{other}).*False"):
+            Plan(planar_adjoint=True, **{other: True})
+    Plan(planar_adjoint=True, lean_substeps=True, positional_joints=True)
 
 
 def test_link_frame_inertia_by_hand():
@@ -355,14 +358,15 @@ def test_reacher_control_step_is_braxs_step_without_gravity():
 def test_reacher_planar_vjp_is_the_trained_steps_with_gravity():
     """At reacher's rollout states (sagged ~2 mm under gravity along its hinges), the planar
     VJP without gravity against the trained step's with it, for a sine cotangent of the
-    in-plane entries: within 1e-4 of each leaf's largest entry (measured 6.3e-5): the gravity planar_normal_gravity leaves out moves the gradient less than that."""
+    in-plane entries: within 1e-4 of each leaf's largest entry (measured 6.3e-5): the gravity
+    planar_normal_gravity leaves out moves the gradient less than that."""
     _, ours, args, ps = _reacher_steps(gravity=True)
     task = make_task("reacher")
     env = task.env.unwrapped
     # reacher's step without planar_adjoint: positional_joints' backward, gravity in
-    cfg = task_config("reacher", 8, {"planar_adjoint": False})
+    cfg = task_config("reacher", 8, {"planar_adjoint": "false"})
     assert not cfg.planar_normal_gravity and cfg.positional_joints
-    trained_step = rollout_physics(task, cfg).env.unwrapped.pipeline_step
+    trained_step = cfg.physics(task).env.unwrapped.pipeline_step
 
     def trained(xi, xdi, a):
         def one(p_, xi_, xdi_, a_):
@@ -370,52 +374,3 @@ def test_reacher_planar_vjp_is_the_trained_steps_with_gravity():
         return planar.cotangent(jax.vmap(one)(ps, xi, xdi, a))
 
     assert_same_vjp(trained, ours, args, in_plane=_in_reacher_plane)
-
-
-@pytest.mark.slow  # compiles brax's control-step VJP: ~2 minutes on one core
-@pytest.mark.parametrize("task", ["inverted_pendulum", "hopper"])
-def test_step_cost_script_times_its_rows(results_script, task):
-    """results/planar/scripts/step_cost.py runs (B = 4, one round of 2 calls): six rows
-    (brax's step, the trained step and the planar form, each forward and as a VJP), and on
-    a spring task (hopper) two more (the planar form over the links), each a positive
-    time."""
-    with results_script("planar", "step_cost") as mod:
-        med = mod.main(["--task", task, "--batch", "4", "--calls", "2", "--rounds", "1"])
-    kinds = ("brax", "trained", "planar") + (("links",) if task == "hopper" else ())
-    assert set(med) == {f"{kind}_{what}" for kind in kinds for what in ("forward", "vjp")}
-    assert all(v > 0 for v in med.values())
-
-
-def test_planar_adjoint_is_on_exactly_where_a_task_allows_it():
-    """ILD trains with `planar_adjoint` on every task whose scene the planar
-    form models and on no other: TASK_OVERRIDES turns it on exactly where
-    `planar_adjoint_refusal` has no objection (inverted_pendulum; hopper and walker2d;
-    reacher, with `planar_normal_gravity`, on exactly where
-    the scene needs it to be allowed), merged with that task's other overrides; `--set
-    planar_adjoint=false` turns it off alone (and planar_normal_gravity with it)."""
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import (PLANAR_ADJOINT_TASKS, PLANAR_NORMAL_GRAVITY_TASKS,
-                                    TASK_OVERRIDES)
-    from tasks.registry import TASKS
-    on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_adjoint")}
-    allowed = {name for name in TASKS
-               if planar_adjoint_refusal(make_task(name), drop_normal_gravity=True) is None}
-    assert set(PLANAR_ADJOINT_TASKS) == on == allowed == {"inverted_pendulum", "hopper",
-                                                          "walker2d", "reacher"}
-    gravity = {name for name, over in TASK_OVERRIDES.items()
-               if over.get("planar_normal_gravity")}
-    needs = {name for name in allowed if planar_adjoint_refusal(make_task(name)) is not None}
-    assert set(PLANAR_NORMAL_GRAVITY_TASKS) == gravity == needs == {"reacher"}
-    ild = get_method("ild")
-    ip = build_config(ild, "inverted_pendulum", "cpu", {})
-    assert ip.planar_adjoint and ip.positional_joints and ip.lean_substeps
-    assert ip.truncation == 128
-    off = build_config(ild, "inverted_pendulum", "cpu", {"planar_adjoint": "false"})
-    assert off == dataclasses.replace(ip, planar_adjoint=False)
-    reacher = build_config(ild, "reacher", "cpu", {})
-    assert reacher.planar_adjoint and reacher.planar_normal_gravity
-    assert reacher.positional_joints and reacher.lean_substeps
-    assert build_config(ild, "reacher", "cpu", {"planar_adjoint": "false"}) == (
-        dataclasses.replace(reacher, planar_adjoint=False, planar_normal_gravity=False))
-    hopper = build_config(ild, "hopper", "cpu", {})
-    assert hopper.planar_adjoint and hopper.hand_adjoint and hopper.lean_substeps

@@ -1,5 +1,5 @@
-"""`planar_links`: the planar spring step (`tasks.planar_spring`) with every link at once
-(`tasks.planar_links`). Its constants over the links, the one-hot products that read across
+"""`planar_links`: the planar spring step (`tasks.physics.planar_spring`) with every link at once
+(`tasks.physics.planar_links`). Its constants over the links, the one-hot products that read across
 links, and the same control step, VJP and rollout gradient as the per-link form and the
 step ILD trains with."""
 import dataclasses
@@ -9,12 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import tasks.planar as planar
-import tasks.planar_links as planar_links
-import tasks.planar_spring as planar_spring
-from methods.ild.config import ILDConfig
+import tasks.physics.planar as planar
+import tasks.physics.planar_links as planar_links
+import tasks.physics.planar_spring as planar_spring
 from tasks import make_task
-from tasks.core import with_planar_adjoint
+from tasks.physics import Plan
+from tasks.physics.transforms import with_planar_adjoint
 from tests.test_planar import assert_same_step, assert_same_vjp
 from tests.test_planar_spring import _control_steps, assert_same_rollout_gradient
 
@@ -85,7 +85,8 @@ def _link_steps(name: str):
     return trained, per_link, links, args, dist
 
 
-@pytest.mark.parametrize("name", ["hopper", pytest.param("walker2d", marks=pytest.mark.slow)])
+@pytest.mark.slow  # the default run checks the links' VJP against the per-link step's below
+@pytest.mark.parametrize("name", ["hopper", "walker2d"])
 def test_link_control_step_is_the_trained_step(name):
     """Every frame and joint coordinate of the step ILD trains with, to float32 round-off,
     with contacts active: positions within 5e-7 and velocities within 2e-5 (measured:
@@ -111,30 +112,12 @@ def test_link_control_step_vjp_is_the_per_link_steps(name):
     assert_same_vjp(per_link, links, args)
 
 
-def test_planar_links_is_on_for_the_spring_tasks_planar_adjoint_takes():
-    """ILD trains with `planar_links` wherever planar_adjoint runs the
-    spring step (hopper, walker2d) and nowhere else; `--set planar_links=false` turns it off
-    alone, and `--set planar_adjoint=false` takes it with it."""
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import PLANAR_ADJOINT_TASKS, PLANAR_LINKS_TASKS, TASK_OVERRIDES
-    on = {name for name, over in TASK_OVERRIDES.items() if over.get("planar_links")}
-    spring = {name for name in PLANAR_ADJOINT_TASKS if make_task(name).spec.backend == "spring"}
-    assert set(PLANAR_LINKS_TASKS) == on == spring == {"hopper", "walker2d"}
-    ild = get_method("ild")
-    walker = build_config(ild, "walker2d", "cpu", {})
-    assert walker.planar_links and walker.planar_adjoint
-    off = build_config(ild, "walker2d", "cpu", {"planar_links": "false"})
-    assert off == dataclasses.replace(walker, planar_links=False)
-    none = build_config(ild, "walker2d", "cpu", {"planar_adjoint": "false"})
-    assert none == dataclasses.replace(walker, planar_adjoint=False, planar_links=False)
-
-
 def test_planar_links_is_refused_where_it_does_not_apply():
-    """The config needs planar_adjoint; a positional task (inverted_pendulum) refuses it by
+    """The plan needs planar_adjoint; a positional task (inverted_pendulum) refuses it by
     name."""
     with pytest.raises(ValueError, match="planar_links writes planar_adjoint's spring step"):
-        ILDConfig(planar_links=True)
-    ILDConfig(planar_adjoint=True, planar_links=True)
+        Plan(planar_links=True)
+    Plan(planar_adjoint=True, planar_links=True)
     with pytest.raises(ValueError, match="'inverted_pendulum' runs 'positional' physics; "
                                          "planar_links writes brax's spring step"):
         with_planar_adjoint(make_task("inverted_pendulum"), links=True)

@@ -1,6 +1,6 @@
 """`planar_adjoint` on the spring backend: brax's spring control step written over the plane
-hopper and walker2d move in (`tasks.planar_spring`), differentiated in place of the step ILD
-trains with. The same values and derivative as that step, with contacts active, and clear
+hopper and walker2d move in (`tasks.physics.planar_spring`), differentiated in place of the
+step ILD trains with. The same values and derivative as that step, with contacts active, and clear
 refusals where a scene leaves the plane."""
 import dataclasses
 
@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 from brax import com, contact, kinematics
 
-import tasks.planar as planar
-import tasks.planar_spring as planar_spring
+import tasks.physics.planar as planar
+import tasks.physics.planar_spring as planar_spring
 from benchmarks.ild_speed import speed_setup, task_config
-from methods.ild.config import ILDConfig
-from methods.ild.train import make_rollout_loss, rollout_physics
+from methods.ild.train import make_rollout_loss
 from tasks import make_task
-from tasks.core import Task, planar_adjoint_refusal, with_planar_adjoint
+from tasks.physics import Plan
+from tasks.core import Task
+from tasks.physics.transforms import planar_adjoint_refusal, with_planar_adjoint
 from tests.test_hand_adjoint import _states
 from tests.test_planar import assert_same_step, assert_same_vjp
 
@@ -71,10 +72,10 @@ def test_spring_planar_adjoint_refuses_what_it_does_not_model():
     motion = sys.dof.motion.replace(ang=sys.dof.motion.ang.at[3].set(jnp.array([1.0, 0, 0])))
     why = planar_spring.spring_refusal(sys.replace(dof=sys.dof.replace(motion=motion)))
     assert why.startswith("a substep moves it out of the x-z plane ("), why
-    ILDConfig(planar_adjoint=True, hand_adjoint=True, hinge_forces=True, planar_root=True)
+    Plan(planar_adjoint=True, hand_adjoint=True, hinge_forces=True, planar_root=True)
     for other in ("closed_form_adjoint", "small_dots"):
-        with pytest.raises(ValueError, match=f"planar_adjoint .*; {other} rewrites"):
-            ILDConfig(planar_adjoint=True, **{other: True})
+        with pytest.raises(ValueError, match=f"(?=.*planar_adjoint)(?=.*{other}).*False"):
+            Plan(planar_adjoint=True, **{other: True})
 
 
 def _consistent(sys, ps, x_i, xd_i):
@@ -96,8 +97,8 @@ def _control_steps(name: str, form=None, without: str = "planar_adjoint", batch:
     state's other fields computed from x_i, xd_i, and the form `form(sys, n_frames)` returns
     for one env (the planar form where None), vmapped; `dist`, the contacts' distances."""
     task, ps, act = _states(name, batch=batch, steps=15)
-    cfg = task_config(name, batch, {without: False})
-    env = rollout_physics(task, cfg).env.unwrapped
+    cfg = task_config(name, batch, {without: "false"})
+    env = cfg.physics(task).env.unwrapped
     sys, n = env.sys, env._n_frames
     if form is None:
         sc = planar_spring.spring_scene(sys)
@@ -130,8 +131,10 @@ def test_spring_control_step_is_the_trained_step(name):
     assert_same_step(want, got, pos=5e-7, q=5e-7, moves=1.0)
 
 
-# the trained step's reverse mode, compiled: ~1.5 minutes on one core (in the default run:
-# planar_adjoint is hopper's and walker2d's default)
+# the trained step's reverse mode, compiled: ~2 minutes on one core; the default run checks
+# the form over the links against this per-link form's VJP (tests/test_planar_links.py)
+# and the link machinery against brax's VJP in 3-D (tests/test_spatial_links.py)
+@pytest.mark.slow
 def test_spring_control_step_vjp_is_the_trained_steps():
     """hopper, contacts active: the VJP in the centre-of-mass frames and the action, for a
     sine cotangent of the in-plane entries of every output, against the reverse mode of
@@ -163,7 +166,7 @@ def assert_same_rollout_gradient(name: str, a: dict, b: dict, rel: float = 1e-5,
     for fields in (a, b):
         cfg = task_config(name, 8, fields)
         policy, goals, norm, params, k = speed_setup(task, cfg)
-        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        loss = make_rollout_loss(cfg.physics(task), policy, goals, norm, cfg.config)
         init_keys = jax.random.split(k[2], 8)
         out.append(jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params))
     (want_l, want), (got_l, got) = out

@@ -1,6 +1,6 @@
 """`positional_joints`: brax's positional substep with the joints' position-level update
-written for hinges and slides (`tasks.positional_joints`), the joints' forces vectorized
-and the frame conversions, inverse inertia and integration by `tasks.spring_adjoint`'s
+written for hinges and slides (`tasks.physics.positional_joints`), the joints' forces vectorized
+and the frame conversions, inverse inertia and integration by `tasks.physics.spring_adjoint`'s
 hand-written VJPs. The same values and gradient as brax's, piece by piece and for a control
 step and a rollout; clear refusals where it does not fit."""
 import dataclasses
@@ -12,12 +12,13 @@ import pytest
 from brax import kinematics
 from brax.positional import joints as brax_joints
 
-from methods.ild.config import ILDConfig
-from methods.ild.train import make_rollout_loss, rollout_physics
+from methods.ild.train import make_rollout_loss
 from tasks import make_task
-from tasks.core import (Task, positional_joints_refusal, with_lean_substeps,
-                        with_positional_joints)
-from tasks.positional_joints import joint_rows, joint_update
+from tasks.physics import Plan, apply
+from tasks.core import Task
+from tasks.physics.transforms import (positional_joints_refusal, with_lean_substeps,
+                                      with_positional_joints)
+from tasks.physics.positional_joints import joint_rows, joint_update
 from tests.test_hand_adjoint import _states
 
 
@@ -54,7 +55,8 @@ def _joint_frames(name, turn: float):
     return sys, j.replace(rot=rot)
 
 
-@pytest.mark.parametrize("name", ["reacher", "inverted_pendulum"])
+@pytest.mark.parametrize("name", [pytest.param("reacher", marks=pytest.mark.slow),
+                                  "inverted_pendulum"])
 def test_joint_update_is_braxs_and_its_vjp(name):
     """`joint_update` against brax's `_three_dof_joint_update` on its `_sphericalize`d joint
     data (what `position_update` computes per link): the same displacements to float32
@@ -109,8 +111,8 @@ def test_positional_step_is_braxs_step_and_action_gradient(name):
         return (out.q, out.qd, out.x.pos, out.x.rot, out.xd.vel, out.xd.ang), g
 
     want, want_g = end_and_grad(with_lean_substeps(task).env.unwrapped.pipeline_step)
-    cfg = ILDConfig(lean_substeps=True, positional_joints=True)
-    got, g = end_and_grad(rollout_physics(task, cfg).env.unwrapped.pipeline_step)
+    plan = Plan(lean_substeps=True, positional_joints=True)
+    got, g = end_and_grad(apply(task, plan).env.unwrapped.pipeline_step)
     for w, o in zip(want, got):
         np.testing.assert_allclose(o, w, rtol=1e-5, atol=1e-5)
     scale = float(jnp.abs(want_g).max())
@@ -133,7 +135,7 @@ def test_positional_joints_is_the_same_rollout_gradient(name):
         cfg = task_config(name, 8, {"positional_joints": on, "planar_adjoint": False})
         assert not cfg.planar_adjoint and cfg.positional_joints is on
         policy, goals, norm, params, k = speed_setup(task, cfg)
-        loss = make_rollout_loss(rollout_physics(task, cfg), policy, goals, norm, cfg)
+        loss = make_rollout_loss(cfg.physics(task), policy, goals, norm, cfg.config)
         init_keys = jax.random.split(k[2], 8)
         out[on] = jax.jit(jax.value_and_grad(lambda p: loss(p, k[3], init_keys)[0]))(params)
     np.testing.assert_allclose(float(out[True][0]), float(out[False][0]), rtol=1e-5)
@@ -153,9 +155,10 @@ def test_positional_joints_refuses_what_it_does_not_model(monkeypatch):
         with pytest.raises(ValueError, match=f"{name}.*positional_joints.*leave it False"):
             with_positional_joints(make_task(name))
     assert positional_joints_refusal(make_task("reacher")) is None
-    monkeypatch.setattr("tasks.positional_joints.joint_rows", lambda sys: "it has a free joint")
+    monkeypatch.setattr("tasks.physics.positional_joints.joint_rows",
+                        lambda sys: "it has a free joint")
     with pytest.raises(ValueError, match="'reacher': it has a free joint; positional_joints"):
         with_positional_joints(make_task("reacher"))
     for other in ("hand_adjoint", "closed_form_adjoint"):
         with pytest.raises(ValueError, match="set positional_joints False"):
-            ILDConfig(positional_joints=True, **{other: True})
+            Plan(positional_joints=True, **{other: True})

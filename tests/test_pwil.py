@@ -175,7 +175,9 @@ def test_demo_count_on_a_seconds_budget_projects_the_runs_env_steps():
     assert count() == pytest.approx(3_000)
 
 
-HELD_OUT_TASKS = ["pointmass", "inverted_pendulum", "reacher", "acrobot", "hopper",
+HELD_OUT_TASKS = ["pointmass", "inverted_pendulum", "acrobot",
+                  pytest.param("reacher", marks=pytest.mark.slow),
+                  pytest.param("hopper", marks=pytest.mark.slow),
                   pytest.param("swimmer", marks=pytest.mark.slow),
                   pytest.param("walker2d", marks=pytest.mark.slow),
                   pytest.param("ant", marks=pytest.mark.slow),

@@ -143,12 +143,14 @@ def test_shac_improves_pointmass_return_within_a_small_budget(store):
     assert rec["final_return"] > first + 5 and rec["final_normalized"] > 1.02, (first, rec)
 
 
-def test_small_dots_trains_on_the_rewritten_physics_behind_the_same_gates(monkeypatch):
-    """`small_dots=True`: the agent is built on `tasks.core.with_small_dots`'s copy of the
-    physics (the same function and gradient: tests/test_small_dots.py), still gated as the
-    method's view was; the task itself (which evaluation runs) is left as it is."""
+def test_shac_trains_on_the_views_physics_plan_behind_the_same_gates(monkeypatch):
+    """SHAC differentiates through the physics (`sim_gradients`), so its view runs the
+    task's physics plan: on acrobot the closed-form backward (its own pipeline_step), with
+    the view's gates kept; without a plan, brax's step; the task itself (which evaluation
+    runs) is left as it is."""
     from bench.access import TaskView
     from bench.api import Uses
+    from tasks.physics import plan_for
     built = []
 
     class Stop(Exception):
@@ -160,14 +162,17 @@ def test_small_dots_trains_on_the_rewritten_physics_behind_the_same_gates(monkey
 
     monkeypatch.setattr(shac, "SHAC", capture)
     task = make_task("acrobot")
-    view = TaskView(task, Uses(true_reward=True, sim_gradients=True), "shac")
-    for small_dots in (False, True):
+    uses = Uses(true_reward=True, sim_gradients=True)
+    for plan in (None, plan_for("acrobot", "cpu")):
+        view = TaskView(task, uses, "shac", plan)
         with pytest.raises(Stop):
-            shac.train(view, None, SHACConfig(small_dots=small_dots), None, seed=0)
+            shac.train(view, None, SHACConfig(), None, seed=0)
+        assert built[-1] is view.env
     plain, fast = built
-    assert plain is view.env and "pipeline_step" not in vars(task.env.unwrapped)
+    assert "pipeline_step" not in vars(plain.unwrapped)
+    assert "pipeline_step" not in vars(task.env.unwrapped)
     assert "pipeline_step" in vars(fast.unwrapped) and fast.unwrapped.sys is task.env.unwrapped.sys
-    hidden = TaskView(task, Uses(sim_gradients=True), "shac")
+    hidden = TaskView(task, Uses(sim_gradients=True), "shac", plan_for("acrobot", "cpu"))
     with pytest.raises(Stop):
-        shac.train(hidden, None, SHACConfig(small_dots=True), None, seed=0)
+        shac.train(hidden, None, SHACConfig(), None, seed=0)
     assert np.isnan(built[-1].reset(jax.random.PRNGKey(0)).reward)

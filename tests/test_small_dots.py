@@ -1,4 +1,4 @@
-"""tasks.small_dots: small matrix products as multiply-and-sum, the same function and
+"""tasks.physics.small_dots: small matrix products as multiply-and-sum, the same function and
 gradient."""
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,7 @@ import pytest
 from jax import lax
 
 from tasks import make_task
-from tasks.small_dots import _dot_as_sum, small_dots_as_sums
+from tasks.physics.small_dots import _dot_as_sum, small_dots_as_sums
 
 
 def count_dots(jaxpr) -> int:
@@ -118,7 +118,7 @@ def _same_physics(name: str):
     as brax's own step, to float32 round-off, and no dot left in the rewritten step; the
     registry's cached task keeps brax's step. Returns (task, one env's pipeline state, one
     action) for further checks."""
-    from tasks.core import with_small_dots
+    from tasks.physics.transforms import with_small_dots
     task = make_task(name)
     fast = with_small_dots(task)
     assert "pipeline_step" not in vars(task.env.unwrapped)  # the cached env is untouched
@@ -135,18 +135,19 @@ def _same_physics(name: str):
     return task, one, a
 
 
+@pytest.mark.slow  # acrobot's step gradient compiled twice; the default run checks the
+# rewrite's value and gradient through control flow above
 def test_small_dots_is_the_same_physics_and_gradient():
     """acrobot (brax's generalized pipeline, 4 substeps per step): the rewrite above; it
-    composes with substep remat as ILD's knobs apply them (the checkpointed substeps are
+    composes with substep remat as a physics plan applies them (the checkpointed substeps are
     rewritten inside), substep remat refuses to drop it (the other order), and it refuses a
     task with no brax physics step."""
-    from methods.ild.config import ILDConfig
-    from methods.ild.train import rollout_physics
-    from tasks.core import with_small_dots, with_substep_remat
+    from tasks.physics import Plan, apply
+    from tasks.physics.transforms import with_small_dots, with_substep_remat
     task, one, a = _same_physics("acrobot")
     remat = jax.make_jaxpr(jax.checkpoint(jnp.sin))(1.0).eqns[0].primitive.name + "["
-    cfg = ILDConfig(num_envs=2, small_dots=True, substep_remat=True)
-    for both in (rollout_physics(task, cfg), with_small_dots(with_substep_remat(task))):
+    plan = Plan(small_dots=True, substep_remat=True)
+    for both in (apply(task, plan), with_small_dots(with_substep_remat(task))):
         jaxpr = jax.make_jaxpr(both.env.unwrapped.pipeline_step)(one, a)
         assert remat in str(jaxpr) and count_dots(jaxpr.jaxpr) == 0
     with pytest.raises(ValueError, match="acrobot.*apply with_substep_remat first"):
@@ -161,7 +162,8 @@ def test_small_dots_swimmer_is_the_same_physics_and_gradient():
     of 5x5 products (mass matrix and its Newton-Schulz inverse) and a joint-limit solve
     (jaxopt's loops: scan, while and cond bodies rewritten); and on the joint-limit-free copy
     with substep remat."""
-    from tasks.core import with_small_dots, with_substep_remat, without_joint_limits
+    from tasks.core import without_joint_limits
+    from tasks.physics.transforms import with_small_dots, with_substep_remat
     task, _, _ = _same_physics("swimmer")
     free = without_joint_limits(task)
     both = with_small_dots(with_substep_remat(free))
@@ -178,7 +180,7 @@ def test_rewrite_binds_primitives_under_either_get_bind_params_contract():
     alone (the rewrite failed on the GPU image's jax 0.11.2 until it took both): either way
     the rewrite binds with the subfuns and the parameters the primitive gave back, and
     jax 0.7's own primitives still answer with the pair."""
-    from tasks.small_dots import _bind_params
+    from tasks.physics.small_dots import _bind_params
 
     class Old:
         def get_bind_params(self, params):

@@ -1,6 +1,6 @@
 """`spatial_links`: brax's spring step of ant's and humanoid's scenes (a free root; hinges,
 2- and 3-dof joints that only turn) with every entry of every vector an array over the
-links (`tasks.spatial_links`). Its constants, brax's joint forces, the same control step
+links (`tasks.physics.spatial_links`). Its constants, brax's joint forces, the same control step
 and VJP as the step ILD trains with, the same rollout gradient, and the scenes and configs
 it refuses."""
 import jax
@@ -8,13 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import tasks.planar as planar
-import tasks.spatial_links as spatial_links
-from methods.ild.config import ILDConfig
+import tasks.physics.planar as planar
+import tasks.physics.spatial_links as spatial_links
 from tasks import make_task
-from tasks.core import spatial_adjoint_refusal, with_spatial_adjoint
+from tasks.physics import Plan
+from tasks.physics.transforms import spatial_adjoint_refusal, with_spatial_adjoint
 from tests.test_planar_spring import _control_steps as control_steps
-from tests.test_planar_spring import assert_same_rollout_gradient, rollout_physics
+from tests.test_planar_spring import assert_same_rollout_gradient
 
 
 def test_spatial_scene_reads_ant_over_its_links():
@@ -88,7 +88,7 @@ def test_spatial_scene_reads_humanoid_over_its_links():
 def _control_steps(name: str = "ant", batch: int = 8):
     """`tests.test_planar_spring._control_steps` for `name` (ant, humanoid) and the form over
     the links: the step ILD trains with without spatial_links (hand_adjoint's spring
-    substep, lean substeps) and `tasks.spatial_links.control_step`."""
+    substep, lean substeps) and `tasks.physics.spatial_links.control_step`."""
     def form(sys, n):
         ls = spatial_links.spatial_scene(sys)
         return lambda xi, xdi, a: spatial_links.control_step(ls, sys, xi, xdi, a, n)
@@ -97,14 +97,14 @@ def _control_steps(name: str = "ant", batch: int = 8):
 
 def test_rotary_joint_forces_are_braxs_on_humanoid():
     """humanoid's joint forces at its links' centres of mass in world frame
-    (`tasks.planar_links._to_links` of `Rotary.force`) against brax's `joints.resolve`, in
+    (`tasks.physics.planar_links._to_links` of `Rotary.force`) against brax's `joints.resolve`, in
     4 states whose joint angles are spread +-0.9 rad about the initial pose (many past their
     limits) and whose speeds are random: within 2e-5 of the largest entry (float32
     round-off), with the hinges', 2- and 3-dof joints' limit torques all in play."""
     from brax import actuator
     from brax.spring import joints, pipeline
 
-    import tasks.planar_links as pl
+    import tasks.physics.planar_links as pl
     sys = make_task("humanoid").env.unwrapped.sys
     ls = spatial_links.spatial_scene(sys)
     lk = ls.links
@@ -199,28 +199,19 @@ def test_spatial_links_is_the_same_rollout_and_gradient(name, steps):
 
 
 @pytest.mark.parametrize("name", ["ant", "humanoid"])
-def test_spatial_links_is_on_for_ant_and_humanoid_on_a_cpu(name):
-    """ILD trains ant and humanoid with `spatial_links` on a CPU (SPATIAL_LINKS_TASKS),
-    and no other task does; `--set spatial_links=false` turns it
-    off alone (the forward's hand_adjoint and its pieces stay), and the rollout physics
-    differentiates through the form over the links (the step's forward is the task's own:
-    brax's values)."""
+def test_spatial_links_differentiates_ant_and_humanoid_through_the_links_form(name):
+    """ant's and humanoid's CPU plans differentiate through `spatial_links`,
+    and without it the plan's forward (hand_adjoint and its pieces) stays: the rollout
+    physics differentiates through the form over the links (the step's forward is the
+    task's own: brax's values)."""
     import dataclasses
 
-    from bench.plugins import build_config, get_method
-    from methods.ild.config import SPATIAL_LINKS_TASKS, TASK_OVERRIDES
-    assert SPATIAL_LINKS_TASKS == ("ant", "humanoid")
-    assert [t for t, over in TASK_OVERRIDES.items() if over.get("spatial_links")] == [
-        "ant", "humanoid"]
-    ild = get_method("ild")
-    on = build_config(ild, name, "cpu", {}, platform="cpu")
-    assert on.spatial_links and on.hand_adjoint and on.saved_residuals
-    assert on.rotary_joints == (name == "humanoid")
-    off = build_config(ild, name, "cpu", {"spatial_links": "false"}, platform="cpu")
-    assert off == dataclasses.replace(on, spatial_links=False)
-    step = rollout_physics(make_task(name), on).env.unwrapped.pipeline_step
+    from tasks.physics import apply, plan_for
+    on = plan_for(name, "cpu")
+    off = dataclasses.replace(on, spatial_links=False)
+    step = apply(make_task(name), on).env.unwrapped.pipeline_step
     assert "_step_with_adjoint" in step.__qualname__  # the task's step, the links' VJP
-    step = rollout_physics(make_task(name), off).env.unwrapped.pipeline_step
+    step = apply(make_task(name), off).env.unwrapped.pipeline_step
     assert "_rebuilt_substep_loop" in step.__qualname__  # hand_adjoint's substeps
 
 
@@ -241,6 +232,6 @@ def test_spatial_links_is_refused_where_it_does_not_apply():
         "it has a joint that slides (hinges and 2- and 3-dof joints that only turn are what "
         "it models)")
     for other in ("planar_adjoint", "small_dots", "closed_form_adjoint"):
-        with pytest.raises(ValueError, match=f"spatial_links .*; {other} rewrites another"):
-            ILDConfig(spatial_links=True, **{other: True})
-    ILDConfig(spatial_links=True, hand_adjoint=True, lean_substeps=True)
+        with pytest.raises(ValueError, match=f"(?=.*spatial_links)(?=.*{other}).*False"):
+            Plan(spatial_links=True, **{other: True})
+    Plan(spatial_links=True, hand_adjoint=True, lean_substeps=True)

@@ -132,6 +132,8 @@ def _grad_through(task_name, horizon):
     return jax.jit(jax.value_and_grad(loss))(a)
 
 
+@pytest.mark.slow  # a 16-step unrolled gradient; the default run differentiates brax tasks
+# in the physics and guarantee tests (tests/test_planar.py, tests/test_guarantees.py)
 def test_a_brax_task_differentiates():
     v, g = _grad_through("inverted_pendulum", 16)
     assert np.isfinite(v) and np.isfinite(np.asarray(g)).all()

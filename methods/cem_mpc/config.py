@@ -28,8 +28,8 @@ class CEMConfig:
     """Floor on the demo-state std used to normalize matched states ('track')."""
     small_dots: bool = False
     """Plan on a copy of the physics whose small matrix products are computed as
-    multiply-and-sum (`tasks.core.with_small_dots`; brax tasks only): the same function to
-    float32 round-off, its forward faster on swimmer's generalized step on the CPU; the
+    multiply-and-sum (`tasks.physics.transforms.with_small_dots`; brax tasks only): the same
+    function to float32 round-off, its forward faster on swimmer's generalized step on the CPU; the
     test episodes still run the task itself. Off by
     default: every recorded CEM-MPC cell ran without it."""
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from bench.api import Policy, TrainResult
 from methods.cem_mpc.config import CEMConfig
-from tasks.core import with_small_dots
+from tasks.physics.transforms import with_small_dots
 
 
 class CEMPlanner:

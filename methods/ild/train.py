@@ -20,10 +20,7 @@ from methods.common.policy import (ObsNorm, TanhGaussianPolicy, bc_optimizer, bc
                                    contract_leading, make_bc_step)
 from methods.ild.config import ILDConfig
 from methods.ild.losses import chamfer_alpha, multi_demo, normalize_grad, stepwise_l2
-from tasks.core import (has_substep_loop, with_closed_form_adjoint, with_hand_adjoint,
-                        with_lean_substeps, with_planar_adjoint, with_positional_joints,
-                        with_small_dots, with_spatial_adjoint, with_substep_remat,
-                        without_joint_limits)
+from tasks.core import without_joint_limits
 
 
 @flax.struct.dataclass
@@ -301,42 +298,11 @@ def updates_this_call(config: ILDConfig, done: int, per_update: int, left_s: flo
 
 
 def rollout_physics(task, config: ILDConfig):
-    """The task the training rollouts differentiate through (evaluation always uses `task`):
-    without joint limits, with each physics substep rematerialized (where the task has brax's
-    substep loop: `substep_remat` is on by default and has nothing to act on elsewhere),
-    without the joint coordinates of all but each step's last substep (`lean_substeps`),
-    with hand-written VJPs for pieces of brax's spring substep (`hand_adjoint`) or brax's
-    positional substep for hinges and slides (`positional_joints`), and/or
-    with small matrix products as multiply-and-sum, or differentiated through its
-    closed-form step (`closed_form_adjoint`), its planar form (`planar_adjoint`; over all
-    links at once with `planar_links`) or its form over the links in 3-D (`spatial_links`),
-    as configured."""
-    if not config.joint_limits:
-        task = without_joint_limits(task)
-    if config.closed_form_adjoint:  # its backward never reads brax's substeps
-        return with_closed_form_adjoint(task)
-    # planar_adjoint's and spatial_links' backwards never read brax's substeps: nothing to
-    # checkpoint
-    remat = config.substep_remat and not (config.planar_adjoint or config.spatial_links)
-    if config.hand_adjoint:
-        task = with_hand_adjoint(task, remat=remat, lean=config.lean_substeps,
-                                 hinges=config.hinge_forces, planar=config.planar_root,
-                                 rotary=config.rotary_joints,
-                                 saved_residuals=config.saved_residuals)
-    elif config.positional_joints:
-        task = with_positional_joints(task, remat=remat, lean=config.lean_substeps)
-    elif config.lean_substeps:
-        task = with_lean_substeps(task, remat=remat)
-    elif remat and has_substep_loop(task):
-        task = with_substep_remat(task)
-    if config.small_dots:
-        task = with_small_dots(task)
-    if config.planar_adjoint:  # the forward built above, differentiated through the plane
-        task = with_planar_adjoint(task, links=config.planar_links,
-                                   drop_normal_gravity=config.planar_normal_gravity)
-    if config.spatial_links:  # the same, through the step over the links in 3-D
-        task = with_spatial_adjoint(task)
-    return task
+    """The task the training rollouts differentiate through (evaluation always uses the task
+    itself): the task as the method was handed it, whose physics runs the task's plan
+    (`tasks.physics.plan`), or a copy of it without joint limits (`joint_limits` False), to
+    which the view applies the same plan."""
+    return task if config.joint_limits else without_joint_limits(task)
 
 
 def bc_warm_start(policy, params, obs, actions, config: ILDConfig, key):

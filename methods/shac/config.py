@@ -37,12 +37,6 @@ class SHACConfig:
     reward_scale: float = 1.0
     obs_norm: bool = True
     """Running mean/std of observations (frozen within a window)."""
-    small_dots: bool = False
-    """Train through the physics step with its small matrix products computed as
-    multiply-and-sum (`tasks.core.with_small_dots`; brax tasks only): the same function and
-    gradient to float32 round-off, faster on swimmer's generalized step on the CPU, so
-    SHAC can run on the physics ILD's `small_dots` runs
-    on. Off by default: every recorded SHAC cell ran without it."""
 
     def __post_init__(self):
         for name in ("actor_lr", "critic_lr", "lr_end", "grad_clip", "reward_scale"):

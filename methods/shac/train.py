@@ -20,7 +20,7 @@ from flax import linen
 
 from bench.api import Policy, TrainResult
 from methods.shac.config import SHACConfig
-from tasks.core import reset_done, strong, with_small_dots
+from tasks.core import reset_done, strong
 
 
 class MLP(linen.Module):
@@ -230,8 +230,6 @@ class SHAC:
 
 
 def train(task, demo, config: SHACConfig, ctx, seed: int) -> TrainResult:
-    if config.small_dots:  # the training physics only: evaluation runs the task itself
-        task = with_small_dots(task)
     agent = SHAC(task.env, task.obs_size, task.action_size, task.episode_length, config)
     s = agent.init(jax.random.PRNGKey(seed))
     steps_per_epoch = config.num_envs * config.horizon
