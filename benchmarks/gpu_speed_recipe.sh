@@ -37,7 +37,7 @@
 # Example (every task's update as it trains, at B = 32 and 360, no APG):
 #   T=420 B=360 APG_TASKS=none ILD_TASKS="ant humanoid hopper walker2d reacher acrobot
 #     swimmer inverted_pendulum" ILD_ROWS=forward,ild_task ILD_BATCHES="32 360"
-# On a GPU ant and humanoid train with hand_adjoint off (ILD's PLATFORM_OVERRIDES): their
+# On a GPU ant and humanoid train with hand_adjoint off (their GPU physics plans): their
 # ild_task row there is XLA's reverse mode; ILD_SETS="ant:hand_adjoint=true" times the
 # hand-written VJPs. XLA's GPU autotuner may pick other kernels for the same program when
 # many processes compile beside it; ALONE=1 avoids that.
