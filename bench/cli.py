@@ -59,10 +59,14 @@ def _print_table(title, columns, rows):
 
 def cmd_tasks(args):
     from tasks import TASKS, make_task
+    from tasks.core import has_substep_loop
     from tasks.demo import DemoError, load_demo
-    rows = []
+    from tasks.physics.plan import PLATFORMS, plan_for
+    rows, plans = [], []
     for name, spec in TASKS.items():
         task = make_task(name)
+        plans.append((name, *(plan_for(name, p).describe(has_substep_loop(task))
+                              for p in PLATFORMS)))
         refs = "no demo yet"
         if spec.demo_path and os.path.exists(spec.demo_path):
             try:
@@ -75,14 +79,9 @@ def cmd_tasks(args):
                      spec.episode_length, refs))
     _print_table("ildbench tasks", ["task", "backend", "obs", "act", "matched", "T",
                                     "demo / references"], rows)
-    from tasks.physics.plan import PLATFORMS, plan_for
-    BRAX_BACKENDS = ("generalized", "positional", "spring")
     _print_table("physics plans: the rewrites a method that differentiates through the "
                  "physics runs (--physics reference: brax's step; docs/physics.md)",
-                 ["task", *PLATFORMS],
-                 [(name, *(plan_for(name, p).describe(spec.env.startswith("brax:") or
-                                                      spec.backend in BRAX_BACKENDS)
-                           for p in PLATFORMS)) for name, spec in TASKS.items()])
+                 ["task", *PLATFORMS], plans)
 
 
 def cmd_methods(args):

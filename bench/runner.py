@@ -32,7 +32,7 @@ from bench.transfer import default_summary
 from tasks import make_task
 from tasks.demo import Demo, library_versions, load_demo
 from tasks.physics.plan import FIELDS as PLAN_FIELDS
-from tasks.physics.plan import Plan, choose
+from tasks.physics.plan import CHOICES, Plan, choose
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -316,7 +316,7 @@ def prepare(req: RunRequest) -> Prepared:
         from bench.plugins import current_platform
         platform = current_platform()
         plan = choose(req.task, req.physics, platform)
-    elif req.physics not in ("task", "reference"):
+    elif req.physics not in CHOICES:
         choose(req.task, req.physics, "cpu")  # names the valid choices
     if task.spec.demo_path is None:
         raise FileNotFoundError(f"task {req.task!r} has no demo yet; create one with "
