@@ -7,6 +7,10 @@
   (`tasks.physics.plan`, chosen by the runner), the same function and gradient as brax's
   step to float32 round-off, at the cost the plan buys.
 - No demo_states / demo_actions: reading those demo fields raises InformationError.
+
+A run with changed training dynamics (`--train-dynamics`, `bench.perturb.parse_dynamics`)
+hands every method the env of those dynamics: the physical parameters scaled in before the
+plan is applied (its rewrites then step the changed physics), the noise wrapped around it.
 """
 from __future__ import annotations
 
@@ -42,14 +46,22 @@ class TaskView:
     through the physics (`sim_gradients`) it runs `plan` (a `tasks.physics.Plan`; None:
     the task's env as it is); the rest is plain task information. A copy a method makes of
     it with a `tasks.core` transform (`without_joint_limits`) comes back behind the same
-    gates, with the same plan (`regated`)."""
+    gates, with the same plan (`regated`). `dynamics` (a `bench.perturb.Perturbation`, None:
+    nominal): the changed dynamics the method trains in."""
 
-    def __init__(self, task: Task, uses: Uses, method: str, plan=None):
+    def __init__(self, task: Task, uses: Uses, method: str, plan=None, dynamics=None):
+        if dynamics is not None:
+            from bench.perturb import physics_scaled
+            task = physics_scaled(task, dynamics)
         if plan is not None and uses.sim_gradients:
             from tasks.physics import apply
             task = apply(task, plan)
         self.plan = plan if uses.sim_gradients else None
+        self.dynamics = dynamics
         env = task.env
+        if dynamics is not None:
+            from bench.perturb import with_noise
+            env = with_noise(env, dynamics)
         if not uses.true_reward:
             env = HideReward(env)
         if not uses.sim_gradients:
@@ -66,10 +78,10 @@ class TaskView:
         self._method = method
 
     def regated(self, task: Task) -> "TaskView":
-        """`task` (a copy built from this view's spec) behind this view's gates and with its
-        plan: the transforms build a fresh env from the spec, which would otherwise drop
-        them."""
-        return TaskView(task, self._uses, self._method, self.plan)
+        """`task` (a copy built from this view's spec) behind this view's gates, with its
+        plan and its training dynamics: the transforms build a fresh env from the spec,
+        which would otherwise drop them."""
+        return TaskView(task, self._uses, self._method, self.plan, self.dynamics)
 
 
 class DemoView:

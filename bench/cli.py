@@ -108,7 +108,8 @@ def _requests(args, methods, tasks, seeds):
         return args.preset
     return [RunRequest(method=m, task=t, seed=s, budget=budget, preset=preset(m),
                        overrides=_overrides(args.set), eval=ev, num_demos=args.num_demos,
-                       physics=args.physics)
+                       physics=args.physics,
+                       train_dynamics=getattr(args, "train_dynamics", None))
             # seed-major: an interrupted sweep leaves whole seeds of the grid, not whole methods
             for s, t, m in itertools.product(seeds, tasks, methods)]
 
@@ -396,6 +397,13 @@ def _add_run_options(p, budget_default=None):
                    help="what a method that differentiates through the physics steps: the "
                         "task's physics plan on this platform (default; `ildbench tasks` "
                         "lists them) or brax's step as it is (reference)")
+    p.add_argument("--train-dynamics", default=None, metavar="FAMILY[:MAGNITUDE][:fixed|fresh]",
+                   help="train in changed dynamics and score under them, beside the nominal "
+                        "score (the demo stays nominal): a perturbation family (init_noise, "
+                        "action_noise, action_bias, obs_noise, actuator, mass, friction, "
+                        "test_noise), its magnitude (default: the task's transfer default) "
+                        "and, for the noisy families, one fixed noise sequence for every "
+                        "episode or fresh noise per episode (default); docs/protocol.md")
     p.add_argument("--force", action="store_true", help="re-run finished cells")
     p.add_argument("--dry-run", action="store_true", help="print the plan only")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")

@@ -36,7 +36,11 @@ COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "transfer_std", "auc_mean", "t50_mean", "t50_reached", "t90_mean", "t90_reached",
            "return_mean", "paper_return", "paper_expert", "diverged", "failed",
            "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
-           "below_zero_action", "version", "stale"]
+           "below_zero_action", "version", "stale", "dynamics", "nominal_mean"]
+DYNAMICS_COLUMNS = ["dynamics", "nominal_mean"]
+"""Shown (markdown) and written (CSV) only for a store that holds runs trained in changed
+dynamics (`--train-dynamics`)."""
+NOMINAL = "nominal"
 STARVED, NOT_ABOVE_ZERO, STALE = "†", "‡", "§"
 
 
@@ -50,13 +54,16 @@ def _transfer(record: dict) -> float | None:
 
 
 def variant(record: dict) -> str:
-    """Short id of (method version, preset, config identity, evaluation): runs pool over
-    seeds only when equal. The config enters as bench.runner.config_identity (non-default
-    fields), so a record made before a knob existed pools with one at the knob's default."""
+    """Short id of (method version, preset, config identity, evaluation, training dynamics):
+    runs pool over seeds only when equal. The config enters as
+    bench.runner.config_identity (non-default fields), so a record made before a knob existed
+    pools with one at the knob's default; the nominal training dynamics add nothing."""
     from bench.runner import record_config_identity
-    key = json.dumps([record.get("method_version"), record.get("preset"),
-                      record_config_identity(record), record.get("eval")], sort_keys=True,
-                     default=str)
+    parts = [record.get("method_version"), record.get("preset"),
+             record_config_identity(record), record.get("eval")]
+    if record.get("train_dynamics"):
+        parts.append(record["train_dynamics"]["key"])
+    key = json.dumps(parts, sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:6]
 
 
@@ -80,12 +87,14 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "env_steps": r.get("env_steps"),
                      "budget_steps": (r.get("budget") or {}).get("env_steps"),
                      "version": str(r.get("method_version")),
-                     "updates": (r.get("train_metrics") or {}).get("train/updates")})
+                     "updates": (r.get("train_metrics") or {}).get("train/updates"),
+                     "dynamics": (r.get("train_dynamics") or {}).get("key", NOMINAL),
+                     "nominal": (r.get("nominal") or {}).get("normalized")})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
                                        "curve", "horizon", "started", "env_steps", "budget_steps",
-                                       "version", "updates"])
+                                       "version", "updates", "dynamics", "nominal"])
 
 
 def _median(col: pd.Series) -> float:
@@ -142,8 +151,8 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
         return pd.DataFrame(columns=COLUMNS)
     floors = floors or {}
     out = []
-    for (task, method, var, uses, budget), g in df.groupby(["task", "method", "variant", "uses",
-                                                            "budget"]):
+    for (task, method, var, uses, budget, dyn), g in df.groupby(
+            ["task", "method", "variant", "uses", "budget", "dynamics"]):
         scored = g[g.status.isin(["ok", "diverged"])]
         norms = scored.normalized.astype(float).to_numpy()
         lo, hi = bootstrap_ci(norms) if len(norms) else (float("nan"), float("nan"))
@@ -166,13 +175,16 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
                     "env_steps_median": _median(scored.env_steps),
                     "updates_median": _median(scored.updates),
                     "min_env_steps": _min_env_steps(method), "floor": False,
-                    "version": g.version.iloc[0]})
+                    "version": g.version.iloc[0], "dynamics": dyn,
+                    "nominal_mean": scored.nominal.astype(float).mean()})
     for row in out:
         need, steps = row["min_env_steps"], row["env_steps_median"]
         row["starved"] = bool(need is not None and pd.notna(steps) and steps < need)
         current = _registered_version(row["method"])
         row["stale"] = bool(current is not None and row["version"] != current)
-        zero = floors.get(row["task"], {}).get("zero_action")
+        # the floors are measured in the nominal dynamics
+        zero = (floors.get(row["task"], {}).get("zero_action")
+                if row["dynamics"] == NOMINAL else None)
         row["below_zero_action"] = bool(zero is not None and pd.notna(row["normalized_mean"])
                                         and row["normalized_mean"] <= zero["normalized"])
     for task, entry in floors.items():
@@ -183,7 +195,7 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
                         "reference": False, "budget": "-", "seeds": 0,
                         "normalized_mean": v["normalized"], "return_mean": v["return"],
                         "floor": True, "starved": False, "below_zero_action": False,
-                        "stale": False,
+                        "stale": False, "dynamics": NOMINAL,
                         "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
                         "paper_return": float("nan"), "paper_expert": float("nan")})
     return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
@@ -232,7 +244,15 @@ def to_markdown(board: pd.DataFrame) -> str:
     cols = ["task", "method", "variant", "normalized", "95% CI", "transfer", "AUC", "t50%",
             "t90%", "return", "env steps", "updates", "paper", "seeds", "budget", "uses",
             "diverged", "failed"]
+    if _changed_dynamics(board):  # the training dynamics, and the nominal score beside
+        show["nominal"] = show.nominal_mean.map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
+        cols[3:3] = ["dynamics"]
+        cols[5:5] = ["nominal"]
     return show[cols].to_markdown(index=False) + "\n" + notes(board)
+
+
+def _changed_dynamics(board: pd.DataFrame) -> bool:
+    return bool((board.dynamics.fillna(NOMINAL) != NOMINAL).any())
 
 
 def notes(board: pd.DataFrame) -> str:
@@ -263,6 +283,11 @@ def notes(board: pd.DataFrame) -> str:
         lines.append("Floors (bench/floors.py, the shared evaluator on the references' "
                      "episodes): zero_action = all-zero actions; demo_replay = the demo's "
                      "actions replayed open loop from each episode's own initial state.")
+    if _changed_dynamics(board):
+        lines.append("dynamics: what the cell trained in and is scored under (--train-dynamics; "
+                     "'nominal': the task itself); its normalized score is against the expert "
+                     "and the random policy in those dynamics, and 'nominal' is the same final "
+                     "policies' score in the nominal dynamics. The floors are nominal ones.")
     if weak:
         lines.append(f"Weakly discriminative (zero_action above {WEAK_ABOVE} normalized): "
                      f"{', '.join(weak)}.")
@@ -279,5 +304,6 @@ def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:
         if renders:  # made by `ildbench render`; linked here
             f.write("\nRenders (expert demo next to a final policy): " +
                     ", ".join(f"[{n[7:-5]}]({n})" for n in renders) + "\n")
-    board.to_csv(csv, index=False)
+    (board if _changed_dynamics(board) else board.drop(columns=DYNAMICS_COLUMNS)).to_csv(
+        csv, index=False)
     return md, csv

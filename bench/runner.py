@@ -25,6 +25,7 @@ from bench.access import DemoView, TaskView
 from bench.api import Diverged, MethodSpec, Policy, TrainResult
 from bench.budget import Budget, Clock
 from bench.evaluator import EvalConfig, Evaluator
+from bench.perturb import Perturbation, parse_dynamics
 from bench.machine import git_revision, machine, resources
 from bench.plugins import build_config, get_method
 from bench.store import Store
@@ -74,27 +75,32 @@ def config_identity(config_cls: type | None, config: Mapping[str, Any]) -> dict:
 
 
 def _run_key(method: str, version: str, config: dict, task: str, demo_sha: str, seed: int,
-             budget: dict, eval_cfg: dict, num_demos: int, ildbench: str) -> str:
+             budget: dict, eval_cfg: dict, num_demos: int, ildbench: str,
+             train_dynamics: str | None = None) -> str:
     key = {"method": method, "method_version": version, "config": config, "task": task,
            "demo": demo_sha, "seed": seed, "budget": budget, "eval": eval_cfg,
            "num_demos": num_demos, "ildbench": ildbench}
+    if train_dynamics is not None:  # absent for the nominal dynamics: those ids stay as they are
+        key["train_dynamics"] = train_dynamics
     return hashlib.sha256(_canonical(key).encode()).hexdigest()[:16]
 
 
 def run_id(method: MethodSpec, config, task: str, demo_sha: str, seed: int, budget: Budget,
-           eval_cfg: EvalConfig, num_demos: int, plan: Plan | None = None) -> str:
+           eval_cfg: EvalConfig, num_demos: int, plan: Plan | None = None,
+           dynamics: Perturbation | None = None) -> str:
     """Content hash of everything that determines the result. The git revision is recorded
     but not hashed (it would re-run every cell after any commit); a method's `version`
     and the ildbench version are hashed instead: bump them when results change. The config
     enters as its `config_identity` (non-default fields only), with the physics plan's
     (`Plan.identity`: the rewrites that differ from `Plan()`) beside it for a method that
-    differentiates through the physics."""
+    differentiates through the physics. Changed training dynamics (`dynamics`) enter as
+    their key (e.g. 'action_bias=0.2:fixed'); the nominal dynamics add nothing."""
     identity = config_identity(method.config_cls, dataclasses.asdict(config))
     if plan is not None:
         identity = {**identity, **plan.identity()}
     return _run_key(method.name, method.version, identity, task, demo_sha, seed,
                     dataclasses.asdict(budget), dataclasses.asdict(eval_cfg), num_demos,
-                    __version__)
+                    __version__, None if dynamics is None else dynamics.key)
 
 
 def record_config_identity(record: Mapping[str, Any]) -> dict:
@@ -118,7 +124,8 @@ def record_run_id(record: Mapping[str, Any]) -> str:
     return _run_key(record["method"], record["method_version"],
                     record_config_identity(record), record["task"],
                     record["demo"]["sha256"], record["seed"], record["budget"], record["eval"],
-                    record["num_demos"], record["versions"]["ildbench"])
+                    record["num_demos"], record["versions"]["ildbench"],
+                    (record.get("train_dynamics") or {}).get("key"))
 
 
 def reindex(store: Store, dry_run: bool = False, log: Callable[[str], None] = print
@@ -291,6 +298,9 @@ class RunRequest:
     physics: str = "task"
     """For a method that differentiates through the physics: 'task' (the task's physics plan
     on this platform, `tasks.physics.plan`) or 'reference' (brax's step as it is)."""
+    train_dynamics: str | None = None
+    """The dynamics the method trains in and is scored under, `FAMILY[:MAGNITUDE]
+    [:fixed|fresh]` (`bench.perturb.parse_dynamics`); None: the nominal task."""
 
 
 @dataclasses.dataclass
@@ -304,6 +314,8 @@ class Prepared:
     """The physics plan the method's env runs (None: a method that does not differentiate
     through the physics steps the task itself)."""
     platform: str | None = None
+    dynamics: Perturbation | None = None
+    """The changed training dynamics (None: nominal)."""
 
 
 def prepare(req: RunRequest) -> Prepared:
@@ -322,13 +334,15 @@ def prepare(req: RunRequest) -> Prepared:
         raise FileNotFoundError(f"task {req.task!r} has no demo yet; create one with "
                                 f"`ildbench expert train --task {req.task}` then "
                                 f"`ildbench expert demo --task {req.task}`")
+    dynamics = (None if req.train_dynamics is None
+                else parse_dynamics(req.train_dynamics, task))
     demo = load_demo(task.spec.demo_path, task)
     if not 1 <= req.num_demos <= demo.num_demos:
         raise ValueError(f"num_demos must be in 1..{demo.num_demos} for {demo.path}, got "
                          f"{req.num_demos}")
     rid = run_id(spec, config, req.task, demo.sha256, req.seed, req.budget, req.eval,
-                 req.num_demos, plan)
-    return Prepared(req, spec, config, demo, rid, plan, platform)
+                 req.num_demos, plan, dynamics)
+    return Prepared(req, spec, config, demo, rid, plan, platform, dynamics)
 
 
 def _record_head(p: Prepared) -> dict:
@@ -340,7 +354,8 @@ def _record_head(p: Prepared) -> dict:
             "reference_method": spec.reference, "budget": dataclasses.asdict(req.budget),
             "eval": dataclasses.asdict(req.eval), "num_demos": req.num_demos,
             **({"physics": {"choice": req.physics, "platform": p.platform,
-                            "plan": dataclasses.asdict(p.plan)}} if p.plan else {})}
+                            "plan": dataclasses.asdict(p.plan)}} if p.plan else {}),
+            **({"train_dynamics": p.dynamics.describe()} if p.dynamics else {})}
 
 
 def failed_record(p: Prepared, message: str) -> dict:
@@ -364,16 +379,24 @@ def execute(p: Prepared, store: Store, force: bool = False,
             return done, True
     req, spec = p.request, p.spec
     task = make_task(req.task)
-    evaluator = Evaluator(task, req.eval, p.demo.expert_return, p.demo.random_return,
+    r_exp, r_rand = p.demo.expert_return, p.demo.random_return
+    scored = task
+    if p.dynamics is not None:  # scored under the dynamics it trains in, against references
+        from bench.perturb import perturbed_task  # measured under them
+        from bench.transfer import references
+        scored = perturbed_task(task, p.dynamics)
+        r_exp, r_rand = references(task, p.demo, p.dynamics)
+    evaluator = Evaluator(scored, req.eval, r_exp, r_rand,
                           allow_sim_at_test=spec.uses.sim_at_test)
     ctx = RunContext(req.budget, evaluator, req.seed, log=log)
     started = datetime.datetime.now(datetime.timezone.utc)
     t0 = time.perf_counter()
-    status, message, result, transfer = "ok", "", None, {}
+    status, message, result, transfer, nominal = "ok", "", None, {}, None
     log(f"run {p.run_id}: {spec.name} on {req.task}, seed {req.seed}, "
-        f"budget {req.budget.describe()}")
+        f"budget {req.budget.describe()}" + (f", training dynamics {p.dynamics.key}"
+                                             if p.dynamics else ""))
     try:
-        result = spec.train(TaskView(task, spec.uses, spec.name, p.plan),
+        result = spec.train(TaskView(task, spec.uses, spec.name, p.plan, p.dynamics),
                             DemoView(p.demo, spec.uses, spec.name, req.num_demos),
                             p.config, ctx, req.seed)
         if not isinstance(result, TrainResult):
@@ -383,6 +406,14 @@ def execute(p: Prepared, store: Store, force: bool = False,
             raise Diverged("the final policy has non-finite parameters")
         train_s = ctx.elapsed()
         final = ctx.evaluate(result.policy, result.env_steps)
+        if p.dynamics is not None:  # the nominal score beside the headline one
+            with ctx.clock.paused():
+                res = Evaluator(task, req.eval, p.demo.expert_return, p.demo.random_return,
+                                allow_sim_at_test=spec.uses.sim_at_test).evaluate(
+                                    result.policy, req.seed)
+            nominal = {"return": res.mean_return, "normalized": res.mean_normalized}
+            log(f"  nominal dynamics: return {_fmt(nominal['return'], 2)}, normalized "
+                f"{_fmt(nominal['normalized'], 3)}")
         if req.eval.transfer or req.eval.robustness:
             from bench import perturb
             from bench.transfer import evaluate_transfer
@@ -418,8 +449,10 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},
         "compiles": dict(ctx.clock.compiles), "retraced": retraced, "reports": ctx.reports,
-        "references": {"expert_return": p.demo.expert_return,
-                       "random_return": p.demo.random_return},
+        "references": {"expert_return": r_exp, "random_return": r_rand},
+        **({"nominal": nominal, "nominal_references": {
+            "expert_return": p.demo.expert_return, "random_return": p.demo.random_return}}
+           if p.dynamics is not None else {}),
         "demo": {"path": os.path.relpath(p.demo.path, _REPO), "sha256": p.demo.sha256},
         "versions": library_versions(), "git_revision": git_revision(), "machine": machine(),
         "resources": resources(),

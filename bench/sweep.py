@@ -224,7 +224,8 @@ def compile_group(p: Prepared) -> str:
     evaluation settings are not baked into them)."""
     r = p.request
     return json.dumps({"method": r.method, "version": p.spec.version, "task": r.task,
-                       "config": dataclasses.asdict(p.config), "num_demos": r.num_demos},
+                       "config": dataclasses.asdict(p.config), "num_demos": r.num_demos,
+                       "physics": r.physics, "train_dynamics": r.train_dynamics},
                       sort_keys=True, default=str)
 
 

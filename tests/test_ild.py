@@ -52,7 +52,7 @@ def test_nearest_matches_brute_force():
                                rtol=1e-6)
 
 
-@pytest.mark.parametrize("distance", ["rms", "sq"])
+@pytest.mark.parametrize("distance", ["rms", "sq", "msq"])
 def test_gradient_is_finite_when_rollout_equals_demo(distance):
     y = jax.random.normal(jax.random.PRNGKey(1), (16, 5))
     g = jax.grad(lambda x: chamfer_alpha(x, y, 1.0, distance).loss)(y)
@@ -63,6 +63,9 @@ def test_gradient_is_finite_when_rollout_equals_demo(distance):
 def test_stepwise_l2_and_multi_demo():
     t = stepwise_l2(X, Y, distance="sq")  # (0 + 4) / 2
     assert float(t.loss) == 2.0
+    x2, y2 = jnp.array([[0.0, 0.0], [3.0, 1.0]]), jnp.array([[0.0, 0.0], [1.0, 1.0]])
+    assert float(stepwise_l2(x2, y2, distance="sq").loss) == 2.0   # (0 + 4) / 2
+    assert float(stepwise_l2(x2, y2, distance="msq").loss) == 1.0  # (0 + 4 / 2) / 2
     ys = jnp.stack([Y, X])  # the second demo equals the rollout
     assert float(multi_demo(chamfer_alpha, X, ys, alpha=1.0, distance="sq").loss) == 0.0
     with pytest.raises(ValueError, match="equal lengths"):

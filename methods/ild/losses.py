@@ -11,6 +11,7 @@ sentence "L_d + alpha L_g" in Section 3.2 contradicts them). d is either
 
     'sq'  : ||x - y||^2                 (the paper's text)
     'rms' : sqrt(mean_D (x - y)^2)      (the original code, which produced the paper's tables)
+    'msq' : mean_D (x - y)^2            (the original code's cloth loss)
 
 The default is 'rms': it is what produced the reported numbers, its value and gradient
 do not grow with the state dimension D (52..143 here), and its gradient w.r.t. a state has
@@ -42,7 +43,9 @@ def _point_distance(sq: jax.Array, dim: int, distance: str) -> jax.Array:
         return sq
     if distance == "rms":
         return safe_sqrt(sq / dim)
-    raise ValueError(f"distance must be 'rms' or 'sq', got {distance!r}")
+    if distance == "msq":
+        return sq / dim
+    raise ValueError(f"distance must be 'rms', 'sq' or 'msq', got {distance!r}")
 
 
 def nearest(x: jax.Array, y: jax.Array, mask: jax.Array | None = None):

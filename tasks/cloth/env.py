@@ -19,8 +19,10 @@ step, a uniform +/-`noise` (action units; the original: 0.05) is added to every 
 velocity entry, plus a fixed bias drawn per episode uniformly in +/-`bias` (the original:
 0.2), both after the [-1, 1] clip, as the original added them to the displacement. The
 original drew its bias once from PRNGKey(1) and reused one noise sequence for every
-episode and iteration; here both come from the episode's reset key: every evaluation
-episode has its own bias and noise, and an evaluation (fixed keys) is reproducible.
+episode and iteration; here both come from the episode's reset key (`noise_info`): every
+evaluation episode has its own bias and noise, and an evaluation (fixed keys) is
+reproducible. A perturbation in fixed mode (bench.perturb) draws them from one constant key
+for every episode instead, the original's setting.
 """
 from __future__ import annotations
 
@@ -69,16 +71,21 @@ class ClothHang(Env):
         self._s0 = sim.settled_state(sim.ClothParams())
         self.episode_length = EPISODE_LENGTH
 
+    def noise_info(self, key: jax.Array) -> dict:
+        """The state info an episode's test noise comes from: its noise key and its bias
+        (uniform in +/-`bias` per gripper velocity entry), drawn from `key`."""
+        k_noise, k_bias = jax.random.split(key)
+        return {"noise_key": k_noise,
+                "bias": self.bias * jax.random.uniform(k_bias, (2, 3), minval=-1.0, maxval=1.0)}
+
     def reset(self, rng: jax.Array) -> State:
         s0 = self._s0
-        k_noise, k_bias = jax.random.split(rng)
-        bias = self.bias * jax.random.uniform(k_bias, (2, 3), minval=-1.0, maxval=1.0)
         ps = {"x": jnp.asarray(s0.x), "v": jnp.asarray(s0.v), "grip": jnp.asarray(s0.grip),
               "t": jnp.zeros(())}
         zero = jnp.zeros(())
         return State(pipeline_state=ps, obs=self.matched_state(ps), reward=zero, done=zero,
                      metrics={"max_strain": sim.max_strain(ps["x"])},
-                     info={"noise_key": k_noise, "bias": bias})
+                     info=self.noise_info(rng))
 
     def step(self, state: State, action: jax.Array) -> State:
         ps = state.pipeline_state
