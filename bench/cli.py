@@ -13,6 +13,7 @@
     ildbench tradeoff backends|budget|ild|substeps --task T   speed-accuracy tables, plots
     ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
+    ildbench plot-cloth --store S       the cloth's gripper paths and final cloth per run
     ildbench expert train --task T      train a PPO expert (progress, time left)
     ildbench expert demo --task T       roll the expert into the task's demo file
     ildbench expert calibrate --task T  per-task default transfer magnitudes (expert keeps 80%)
@@ -333,6 +334,13 @@ def cmd_plot_robustness(args):
     return 0
 
 
+def cmd_plot_cloth(args):
+    from bench.plots import cloth_paths_plot
+    from bench.store import Store
+    print(f"written: {cloth_paths_plot(Store(args.store), args.out)}")
+    return 0
+
+
 def cmd_expert(args):
     from tasks import get_spec
     from bench.budget import parse_seconds
@@ -541,6 +549,9 @@ def build_parser():
     p.add_argument("--task", required=True)
     p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_plot_robustness)
+    p = sub.add_parser("plot-cloth", help="the cloth's gripper paths and final cloth per run")
+    p.add_argument("--out", default=None, help=_OUT_HELP)
+    p.set_defaults(fn=cmd_plot_cloth)
     p = sub.add_parser("expert", help="expert training and demos")
     esub = p.add_subparsers(dest="expert_cmd", required=True)
     _eadd = esub.add_parser

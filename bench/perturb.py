@@ -34,9 +34,9 @@ seed: the changed dynamics are one deterministic system, as in the paper's cloth
 
 By default a method trains on the nominal task and meets these variants only at test time
 (zero-shot transfer). `--train-dynamics FAMILY[:MAGNITUDE][:fixed|fresh]` changes the
-dynamics a method trains in (`parse_dynamics`, `training_task`): the demo and its references
-stay nominal, and the run is scored under the same changed dynamics, beside its nominal
-score. Normalization under a perturbation uses the expert's and the random policy's returns
+dynamics a method trains in (`parse_dynamics`; `physics_scaled` and `with_noise` build its
+env): the demo and its references stay nominal, and the run is scored under the same changed
+dynamics, beside its nominal score. Normalization under a perturbation uses the expert's and the random policy's returns
 measured under the SAME perturbation by the same evaluator (bench/transfer.py).
 """
 from __future__ import annotations
@@ -227,7 +227,7 @@ class _Perturbed(Wrapper):
     `fixed`: every episode draws its noise from `FIXED_NOISE_KEY` (the env's own test noise
     too, through its `noise_info`), not from its reset key. `physics` False: the physical
     parameters are left as they are (a training env has them scaled in already,
-    `training_task`)."""
+    `physics_scaled`)."""
 
     def __init__(self, env, mags, fixed: bool = False, physics: bool = True):
         super().__init__(env)
@@ -377,7 +377,7 @@ def physics_scaled(task: Task, p: Perturbation) -> Task:
     same numbers), so a physics plan applied to the copy afterwards (whose rewrites read the
     parameters once, when they are built) steps the changed physics; test_noise builds the
     task's declared noisy env. The other families: `task` itself (their noise is a wrapper,
-    `training_task`). The registry's cached task is left as it is."""
+    `with_noise`). The registry's cached task is left as it is."""
     if p.family == "test_noise":
         return Task(spec=task.spec, env=build_env(task.spec, test_noise=p.magnitude))
     if not p.physical:

@@ -61,3 +61,49 @@ def robustness_plot(store: Store, task: str, out_dir: str) -> str:
     axes[0][-1].legend(fontsize=8)
     fig.suptitle(f"{task}: robustness (1.0 = expert under the same perturbation)")
     return save_figure(fig, out_dir, f"robustness_{task}.png")
+
+
+def cloth_paths_plot(store: Store, out_dir: str) -> str:
+    """What the cloth's final policies do: per method, the two grippers' paths in the
+    (z, y) side view of the first evaluation episode (the stored trajectory), the demo's in
+    black, the pole as a circle, each run's final cloth as dots; one line per (seed,
+    training dynamics), solid where the run succeeded."""
+    import numpy as np
+    from tasks import make_task
+    from tasks.cloth import sim
+    from tasks.demo import load_demo
+    task = make_task("cloth")
+    demo = np.asarray(load_demo(task.spec.demo_path, task).states[0])
+    runs = [r for r in store.records() if r["task"] == "cloth" and r["status"] == "ok"
+            and store.trajectory(r["run_id"]) is not None]
+    if not runs:
+        raise ValueError(f"no finished cloth runs with a stored trajectory in {store.root}")
+    methods = sorted({r["method"] for r in runs})
+    fig, axes = plt.subplots(1, len(methods), figsize=(4 * len(methods), 3.6), squeeze=False,
+                             sharex=True, sharey=True)
+    grip = 6 * sim.N  # the grippers' (x, y, z, r) follow the particles' (x, y, z, v)
+    for ax, method in zip(axes[0], methods):
+        for g in (0, 1):
+            ax.plot(demo[:, grip + 4 * g + 2], demo[:, grip + 4 * g + 1], color="black",
+                    lw=2, label="demo" if g == 0 else None)
+        for i, r in enumerate(sorted((r for r in runs if r["method"] == method),
+                                     key=lambda r: (r["seed"], str(r.get("train_dynamics"))))):
+            states = store.trajectory(r["run_id"])
+            dyn = (r.get("train_dynamics") or {}).get("key", "nominal")
+            ok = (r.get("final_normalized") or 0) >= 0.5
+            color = f"C{i}"
+            for g in (0, 1):
+                ax.plot(states[:, grip + 4 * g + 2], states[:, grip + 4 * g + 1], color=color,
+                        ls="-" if ok else "--", lw=1,
+                        label=f"seed {r['seed']} {dyn}: {r['final_normalized']:.2f}"
+                        if g == 0 else None)
+            cloth = states[-1, :grip].reshape(sim.N, 6)
+            ax.scatter(cloth[:, 2], cloth[:, 1], s=1, color=color, alpha=0.3)
+        ax.add_patch(plt.Circle((sim.POLE_YZ[1], sim.POLE_YZ[0]), 0.01, color="red"))
+        ax.set_title(method)
+        ax.set_xlabel("z")
+        ax.legend(fontsize=6)
+    axes[0][0].set_ylabel("y (height)")
+    fig.suptitle("cloth: gripper paths of the first evaluation episode (dashed: failed), "
+                 "final cloth as dots, pole in red")
+    return save_figure(fig, out_dir, "cloth_paths.png")

@@ -1,6 +1,7 @@
 """How far does ILD's gradient reach? A probe of the loss around the BC warm start.
 
     python -m benchmarks.ild_probe --task hopper [--num-envs 10] [--positions-only] [--no-joint-limits]
+        [--train-dynamics FAMILY[:MAGNITUDE][:fixed|fresh]]
 
 From the BC warm start (the point every ILD run starts from) it takes one batch of rollouts
 with fixed action noise and initial states, so the loss is a deterministic function of the
@@ -25,6 +26,9 @@ policy parameters, and prints:
 are removed (brax `sys.dof.limit = None`): where the loss turns smooth without them, the
 roughness came from limits switching on and off between time steps (brax's generalized
 backend solves them as constraints, like contacts).
+
+`--train-dynamics` probes the loss in the changed dynamics a run trains in
+(`bench.perturb.parse_dynamics`; cloth under the paper's protocol: `test_noise:1:fixed`).
 """
 from __future__ import annotations
 
@@ -124,6 +128,8 @@ def main(argv=None):
                     help="the update's truncation window (default: ILD's for the task)")
     ap.add_argument("--no-joint-limits", action="store_true",
                     help="probe a copy of the task without its joint-range constraints")
+    ap.add_argument("--train-dynamics", default=None,
+                    help="probe in changed dynamics, as a run with --train-dynamics trains")
     ap.add_argument("--grad-norm-scope", choices=NORM_SCOPES, default=None,
                     help="the per-step normalization's scope (default: ILD's, 'env'; "
                          "'batch' is the original's one norm over all envs)")
@@ -133,6 +139,12 @@ def main(argv=None):
     demo = load_demo(task.spec.demo_path, task)
     if args.no_joint_limits:
         task = without_joint_limits(task)
+    if args.train_dynamics is not None:
+        from bench.access import TaskView
+        from bench.api import Uses
+        from bench.perturb import parse_dynamics
+        task = TaskView(task, Uses(true_reward=True, sim_gradients=True), "ild_probe", None,
+                        parse_dynamics(args.train_dynamics, task))
     config = dataclasses.replace(ILDConfig(num_envs=args.num_envs),
                                  **TASK_OVERRIDES.get(args.task, {}))
     if args.truncation is not None:
@@ -141,7 +153,8 @@ def main(argv=None):
         config = dataclasses.replace(config, grad_norm_scope=args.grad_norm_scope)
     r = probe(task, demo, config, args.seed, positions_only=args.positions_only)
     print(f"{args.task}{' (positions only)' if args.positions_only else ''}"
-          f"{' (no joint limits)' if args.no_joint_limits else ''}: B = "
+          f"{' (no joint limits)' if args.no_joint_limits else ''}"
+          f"{f' (training dynamics {args.train_dynamics})' if args.train_dynamics else ''}: B = "
           f"{config.num_envs}, {r['params']} parameters, from the BC warm start")
     print(f"loss {r['loss']:.4f} (4 other action-noise draws: "
           f"{', '.join(f'{x:.4f}' for x in r['other_keys'])})")

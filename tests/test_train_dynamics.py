@@ -269,3 +269,21 @@ def test_a_nominal_store_keeps_its_table_layout(probe, store):
     execute(prepare(_request()), store, log=lambda s: None)
     header = to_markdown(board(records_frame(store))).splitlines()[0]
     assert "dynamics" not in header and "nominal" not in header
+
+
+def test_cloth_paths_plot_draws_each_run_and_refuses_an_empty_store(store, tmp_path):
+    """A cloth record whose trajectory is the demo's own: the plot is written; a store with
+    no cloth run is a clear error."""
+    from bench.plots import cloth_paths_plot
+    from tasks.demo import load_demo
+    task = make_task("cloth")
+    with pytest.raises(ValueError, match="no finished cloth runs"):
+        cloth_paths_plot(store, str(tmp_path / "out"))
+    store.write({"run_id": "c0", "task": "cloth", "method": "bc", "seed": 0, "status": "ok",
+                 "final_normalized": 1.0,
+                 "train_dynamics": Perturbation("test_noise", 1.0, "fixed").describe()})
+    store.write_trajectory("c0", load_demo(task.spec.demo_path, task).states[0])
+    path = cloth_paths_plot(store, str(tmp_path / "out"))
+    assert path.endswith("cloth_paths.png")
+    import os
+    assert os.path.getsize(path) > 10_000

@@ -166,12 +166,14 @@ TASK_OVERRIDES: dict[str, dict] = {
     "acrobot": {"truncation": 128},
     # The original's cloth configuration (../shared facts, docs/methods/ild.md): 10 parallel
     # rollouts, Adam lr 1e-4, 2000 BC warm-start updates, a Chamfer of raw states under the
-    # mean squared distance (the demo's cloth coordinates have stds below 0.19, so a std
-    # floor of 1 leaves them unscaled), the per-step gradient norm over the whole batch, and
-    # the tanh on the loss (below 1e-2 here, where tanh is the identity to 1e-4). Not here:
-    # its average of 5 gradient samples per update. A preset wins over these (the cpu preset sets num_envs 32): cloth runs
+    # mean squared distance and a policy on unnormalized observations (the demo's cloth
+    # coordinates have stds below 0.19, so std floors of 1 leave both unscaled), the
+    # per-step gradient norm over the whole batch, and the tanh on the loss (below 1e-2
+    # here, where tanh is the identity to 1e-4). Not here: its average of 5 gradient samples
+    # per update. A preset wins over these (the cpu preset sets num_envs 32): cloth runs
     # pass --set num_envs=10.
     "cloth": {"num_envs": 10, "learning_rate": 1e-4, "bc_updates": 2000, "distance": "msq",
-              "state_std_min": 1.0, "grad_norm_scope": "batch", "tanh_loss": True},
+              "state_std_min": 1.0, "obs_std_min": 1.0, "grad_norm_scope": "batch",
+              "tanh_loss": True},
 }
 
