@@ -164,7 +164,7 @@ class Clock:
         'name (file:line)' -> {'count': extra traces, 'why': JAX's explanation of the first}."""
         self._start = time.perf_counter()
         self._paused = 0.0
-        _METER.activate(self)
+        _meter().activate(self)
 
     def note_trace(self, explanation: str) -> None:
         fun = _traced_function(explanation)
@@ -180,16 +180,18 @@ class Clock:
     @contextlib.contextmanager
     def paused(self):
         t0 = time.perf_counter()
-        _METER.bucket = "eval"
+        meter = _meter()
+        meter.bucket = "eval"
         try:
             yield
         finally:
-            _METER.bucket = "train"
+            meter.bucket = "train"
             self._paused += time.perf_counter() - t0
 
     def close(self):
-        if _METER.active is self:
-            _METER.activate(None)
+        meter = _meter()
+        if meter.active is self:
+            meter.activate(None)
 
 
 def _why(explanation: str, lines: int = 8) -> str:
@@ -198,4 +200,13 @@ def _why(explanation: str, lines: int = 8) -> str:
     return " / ".join(body[:lines])[:600]
 
 
-_METER = _CompileMeter()
+_METER: _CompileMeter | None = None
+
+
+def _meter() -> _CompileMeter:
+    """The process's one compile meter (its JAX listeners are registered once), built when
+    the first clock starts rather than at import."""
+    global _METER
+    if _METER is None:
+        _METER = _CompileMeter()
+    return _METER
