@@ -603,7 +603,7 @@ def main(argv=None) -> int:
         from bench.store import DEFAULT_ROOT
         args.store = DEFAULT_ROOT
     if getattr(args, "out", "") is None and args.cmd in ("sweep", "leaderboard",
-                                                           "plot-robustness"):
+                                                           "plot-robustness", "plot-cloth"):
         args.out = default_out(args.store)
     if args.cmd in ("run", "sweep", "quick") and args.budget is None and \
             args.budget_steps is None:
