@@ -252,12 +252,10 @@ class _Perturbed(Wrapper):
         mags = jnp.asarray(self.mags)
         with self._physics():
             s = self.env.reset(rng)  # the nominal reset: magnitude 0 reproduces it exactly
-            if self.fixed:
-                fixed_key = jax.random.PRNGKey(FIXED_NOISE_KEY)
-                noise_info = getattr(self.env.unwrapped, "noise_info", None)
-                if noise_info is not None:  # the env's own test noise (cloth)
-                    s = s.replace(info={**s.info, **noise_info(fixed_key)})
-            source = fixed_key if self.fixed else rng
+            source = jax.random.PRNGKey(FIXED_NOISE_KEY) if self.fixed else rng
+            noise_info = getattr(self.env.unwrapped, "noise_info", None)
+            if self.fixed and noise_info is not None:  # the env's own test noise (cloth)
+                s = s.replace(info={**s.info, **noise_info(source)})
             k_init, k_bias, k_step = jax.random.split(jax.random.fold_in(source, 0x9E27), 3)
             m_init = _m(mags, "init_noise")
             noisy = self._init_noise(s, k_init, m_init)
@@ -273,7 +271,7 @@ class _Perturbed(Wrapper):
         if isinstance(ps, jax.Array):  # pure-JAX tasks: the pipeline state is the vector
             ps = ps + jax.random.uniform(key, ps.shape, minval=-m, maxval=m)
             return s.replace(pipeline_state=ps, obs=ps)
-        if not _has_joint_coordinates(inner):  # e.g. cloth: init_noise cannot change it
+        if not hasattr(inner, "pipeline_init"):  # e.g. cloth: init_noise cannot change it
             return s
         k_q, k_qd = jax.random.split(key)
         q = ps.q + jax.random.uniform(k_q, ps.q.shape, minval=-m, maxval=m)
