@@ -59,6 +59,7 @@ def _print_table(title, columns, rows):
 
 
 def cmd_tasks(args):
+    from bench.perturb import TASK_DEFAULT, parse_dynamics
     from tasks import TASKS, make_task
     from tasks.core import has_substep_loop
     from tasks.demo import DemoError, load_demo
@@ -76,10 +77,12 @@ def cmd_tasks(args):
                        f"{d.random_return:.2f}"
             except DemoError as e:
                 refs = f"INVALID: {e}"
+        adapt = "-" if spec.adapt is None else parse_dynamics(TASK_DEFAULT, task).key
         rows.append((name, spec.backend, task.obs_size, task.action_size, task.state_size,
-                     spec.episode_length, refs))
+                     spec.episode_length, adapt, refs))
     _print_table("ildbench tasks", ["task", "backend", "obs", "act", "matched", "T",
-                                    "demo / references"], rows)
+                                    "adapt (--train-dynamics task)", "demo / references"],
+                 rows)
     _print_table("physics plans: the rewrites a method that differentiates through the "
                  "physics runs (--physics reference: brax's step; docs/physics.md)",
                  ["task", *PLATFORMS], plans)
@@ -272,11 +275,18 @@ def cmd_conform(args):
 
 
 def cmd_render(args):
-    from bench.render import render_pair
+    from bench.render import render_cloth, render_pair
     from bench.store import Store
     from tasks import get_spec
     get_spec(args.task)
-    print(f"written: {render_pair(Store(args.store), args.task, args.method, args.out, args.seed)}")
+    if args.task == "cloth":
+        path = render_cloth(Store(args.store), args.out, args.method, args.seed)
+    elif args.method is None or len(args.method) != 1:
+        raise ValueError(f"render --task {args.task} draws one method beside the demo: give "
+                         "--method NAME (several methods side by side: --task cloth)")
+    else:
+        path = render_pair(Store(args.store), args.task, args.method[0], args.out, args.seed)
+    print(f"written: {path}")
     return 0
 
 
@@ -411,7 +421,8 @@ def _add_run_options(p, budget_default=None):
                         "action_noise, action_bias, obs_noise, actuator, mass, friction, "
                         "test_noise), its magnitude (default: the task's transfer default) "
                         "and, for the noisy families, one fixed noise sequence for every "
-                        "episode or fresh noise per episode (default); docs/protocol.md")
+                        "episode or fresh noise per episode (default); `task`: each task's "
+                        "own adaptation dynamics (`ildbench tasks`); docs/protocol.md")
     p.add_argument("--force", action="store_true", help="re-run finished cells")
     p.add_argument("--dry-run", action="store_true", help="print the plan only")
     p.add_argument("--jax-cache", default=None, help="persistent compilation cache dir")
@@ -516,11 +527,13 @@ def build_parser():
     p.add_argument("name", help="the method's name (a Python identifier, e.g. mymethod)")
     p.add_argument("--dir", default=None, help="where to write it (default ./ildbench-NAME)")
     p.set_defaults(fn=cmd_new_method)
-    p = sub.add_parser("render", help="HTML: the expert demo next to a method's final policy")
+    p = sub.add_parser("render", help="HTML: the expert demo next to a method's final policy "
+                       "(cloth: an animation of every method, per training dynamics)")
     p.add_argument("--task", required=True)
-    p.add_argument("--method", required=True)
+    p.add_argument("--method", nargs="+", default=None,
+                   help="the method (cloth: any number; default every method in the store)")
     p.add_argument("--seed", type=int, default=None, help="default: the best-scoring seed")
-    p.add_argument("--out", default="results")
+    p.add_argument("--out", default=None, help="default: results, or beside the store for cloth")
     p.set_defaults(fn=cmd_render)
     p = sub.add_parser("tradeoff", help="speed-accuracy trade-offs: backends, budget, ILD")
     p.add_argument("part", choices=["backends", "budget", "ild", "substeps"])
@@ -605,6 +618,8 @@ def main(argv=None) -> int:
     if getattr(args, "out", "") is None and args.cmd in ("sweep", "leaderboard",
                                                            "plot-robustness", "plot-cloth"):
         args.out = default_out(args.store)
+    if args.cmd == "render" and args.out is None:
+        args.out = default_out(args.store) if args.task == "cloth" else "results"
     if args.cmd in ("run", "sweep", "quick") and args.budget is None and \
             args.budget_steps is None:
         print("error: give a budget: --budget 300s (wall-clock) and/or --budget-steps N",

@@ -122,13 +122,27 @@ class Perturbation:
                 "key": self.key}
 
 
+TASK_DEFAULT = "task"
+"""`--train-dynamics task`: each task's `TaskSpec.adapt`."""
+
+
 def parse_dynamics(text: str, task: Task | None = None) -> Perturbation:
     """`FAMILY[:MAGNITUDE][:fixed|fresh]` (e.g. `action_bias:0.2:fixed`, `mass:0.3`,
     `test_noise`) as a Perturbation for the dynamics a method trains in. Without a
     magnitude: the task's default for the family (`TaskSpec.transfer`, else `DEFAULTS`);
-    without a mode: fresh. Raises ValueError naming the valid choices for an unknown family
+    without a mode: fresh. `task`: the task's own adaptation dynamics (`TaskSpec.adapt`), so
+    one sweep trains every task in its own. Raises ValueError naming the valid choices for an unknown family
     or mode, a magnitude outside `RANGES` or 0 (the nominal dynamics), or a family that
     cannot change `task`'s dynamics."""
+    if str(text).strip() == TASK_DEFAULT:
+        adapt = None if task is None else task.spec.adapt
+        if adapt is None:
+            having = [name for name, spec in tasks.TASKS.items() if spec.adapt is not None]
+            raise ValueError(f"--train-dynamics task: task "
+                             f"{getattr(task, 'name', None)!r} declares no adaptation dynamics "
+                             f"(TaskSpec.adapt); tasks that do: {', '.join(having)}; or name a "
+                             "family: FAMILY[:MAGNITUDE][:fixed|fresh]")
+        return parse_dynamics(adapt, task)
     parts = [x.strip() for x in str(text).split(":")]
     family, rest = parts[0], parts[1:]
     if family not in FAMILIES:

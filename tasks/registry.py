@@ -47,6 +47,12 @@ class TaskSpec:
     (bench/perturb.py); for the brax tasks copied from `ildbench expert calibrate` (the expert
     keeps >= 80% of its return; results/transfer/calibration). None: every generic family
     at its generic default (tasks not calibrated yet)."""
+    adapt: str | None = None
+    """The changed dynamics of the adaptation table (`--train-dynamics task`, docs/protocol.md):
+    one of the task's transfer families, at its calibrated magnitude, so that a method trained
+    in it is scored in the same dynamics as the zero-shot transfer column. A physical family
+    where the task has one (weaker actuators: a policy must push harder than the demo did),
+    else a fresh action bias. None: the task has no adaptation cell."""
     success_score: bool = False
     """The return is a success indicator (0/1): the normalized score is the success rate,
     with references 1 and 0 under every test dynamics (not re-measured per perturbation)."""
@@ -69,43 +75,52 @@ _TABLE: tuple[TaskSpec, ...] = (
              "x, v (2)", "x, v (2)", demo="pointmass.npz"),
     TaskSpec("inverted_pendulum", "brax:inverted_pendulum", "positional",
              "q, qd (4)", _BRAX_MATCHED, demo="inverted_pendulum.npz", paper_expert_return=128.0,
+             adapt="actuator",
              transfer=(("init_noise", 0.1), ("action_noise", 0.3), ("action_bias", 0.2),
                        ("obs_noise", 0.05), ("actuator", -0.3), ("mass", 0.3))),
     TaskSpec("reacher", "brax:reacher", "positional",
              "brax reacher obs (11)", _BRAX_MATCHED, demo="reacher.npz", paper_expert_return=-22.5,
+             adapt="actuator",
              transfer=(("init_noise", 0.1), ("action_noise", 0.2), ("action_bias", 0.2),
                        ("actuator", -0.3))),
     TaskSpec("acrobot", "ildbench:acrobot", "generalized",
              "theta1, theta2, dtheta1, dtheta2 (4)", _BRAX_MATCHED, demo="acrobot.npz",
              paper_expert_return=200.8,
+             adapt="action_bias",
              transfer=(("init_noise", 0.1), ("action_noise", 0.1), ("action_bias", 0.2),
                        ("obs_noise", 0.05))),
     TaskSpec("swimmer", "brax:swimmer", "generalized",
              "brax swimmer obs (8)", _BRAX_MATCHED, demo="swimmer.npz", paper_expert_return=4.3,
+             adapt="actuator",
              transfer=(("init_noise", 0.1), ("action_noise", 0.1), ("obs_noise", 0.05),
                        ("actuator", -0.2), ("mass", 0.3))),
     TaskSpec("hopper", "brax:hopper", "spring",
              "brax hopper obs (11)", _BRAX_MATCHED, demo="hopper.npz", paper_expert_return=293.0,
+             adapt="actuator",
              transfer=(("action_noise", 0.2), ("action_bias", 0.1), ("obs_noise", 0.02),
                        ("actuator", -0.3), ("friction", -0.5))),
     TaskSpec("walker2d", "brax:walker2d", "spring",
              "brax walker2d obs (17)", _BRAX_MATCHED, demo="walker2d.npz",
              paper_expert_return=289.0,
+             adapt="actuator",
              transfer=(("init_noise", 0.05), ("action_noise", 0.3), ("action_bias", 0.2),
                        ("obs_noise", 0.05), ("actuator", -0.3), ("mass", 0.3),
                        ("friction", -0.5))),
     TaskSpec("ant", "brax:ant", "spring",
              "brax ant obs (27)", _BRAX_MATCHED, demo="ant.npz", paper_expert_return=624.0,
+             adapt="actuator",
              transfer=(("init_noise", 0.1), ("action_noise", 0.1), ("action_bias", 0.1),
                        ("obs_noise", 0.02), ("actuator", -0.1), ("friction", -0.25))),
     TaskSpec("humanoid", "brax:humanoid", "spring",
              "brax humanoid obs (244)", _BRAX_MATCHED, demo="humanoid.npz", paper_expert_return=933.0,
+             adapt="actuator",
              transfer=(("action_noise", 0.3), ("action_bias", 0.2), ("actuator", -0.1),
                        ("friction", -0.25))),
     TaskSpec("cloth", "ildbench:cloth", "cloth",
              "= matched state (1736)",
              "per particle (x, y, z, vx, vy, vz) x 288, then gripper 0 and 1 (x, y, z, r)",
-             demo="cloth.npz", episode_length=80, transfer=(("test_noise", 1.0),),
+             demo="cloth.npz", episode_length=80, adapt="test_noise:fixed",
+             transfer=(("test_noise", 1.0),),
              success_score=True),
 )
 # fmt: on

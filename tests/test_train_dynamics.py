@@ -287,3 +287,22 @@ def test_cloth_paths_plot_draws_each_run_and_refuses_an_empty_store(store, tmp_p
     assert path.endswith("cloth_paths.png")
     import os
     assert os.path.getsize(path) > 10_000
+
+
+def test_task_dynamics_resolve_to_each_tasks_calibrated_adaptation_family():
+    """`--train-dynamics task` is each task's TaskSpec.adapt at its transfer column's
+    magnitude, with the same key (so the same run id) as naming the family."""
+    from bench.perturb import parse_dynamics
+    from tasks import TASKS, make_task
+    hopper = make_task("hopper")
+    assert parse_dynamics("task", hopper) == parse_dynamics("actuator", hopper)
+    assert parse_dynamics("task", hopper).key == "actuator=-0.3"
+    assert parse_dynamics("task", make_task("acrobot")).key == "action_bias=0.2"
+    assert parse_dynamics("task", make_task("cloth")).key == "test_noise=1:fixed"
+    for name, spec in TASKS.items():  # every declared family is one of its transfer families
+        if spec.adapt is not None:
+            p = parse_dynamics("task", make_task(name))
+            assert (p.family, p.magnitude) in dict(spec.transfer).items(), name
+    with pytest.raises(ValueError, match="'pointmass' declares no adaptation dynamics.*"
+                                         "tasks that do: inverted_pendulum"):
+        parse_dynamics("task", make_task("pointmass"))
