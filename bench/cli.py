@@ -158,6 +158,9 @@ def cmd_run(args):
 
 def cmd_sweep(args):
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    if getattr(args, "tune", False):
+        from bench.seeds import check_tuning_seeds
+        check_tuning_seeds(seeds)
     code = _run_all(args, _requests(args, args.methods, args.tasks, seeds))
     if not args.dry_run:
         cmd_leaderboard(args)
@@ -218,9 +221,17 @@ def starved_note(store_dir: str, methods, tasks) -> str:
 def cmd_leaderboard(args):
     from bench.report import write_report
     from bench.store import Store
-    paths = write_report(Store(args.store), args.out)
+    zero_shot = None
+    if args.zero_shot is not None:
+        if not os.path.isdir(args.zero_shot):
+            print(f"error: --zero-shot store {args.zero_shot!r} is not a directory; name a "
+                  "store of nominal-trained runs swept with --transfer (e.g. "
+                  "results/grid/runs)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        zero_shot = Store(args.zero_shot)
+    paths = write_report(Store(args.store), args.out, zero_shot=zero_shot)
     print(open(paths[0]).read())  # leaderboard.md
-    for name in ("sample_matched.md", "aggregates.md"):
+    for name in ("sample_matched.md", "aggregates.md", "adaptation.md"):
         path = os.path.join(args.out, name)
         if path in paths:
             print(open(path).read())
@@ -467,6 +478,10 @@ def build_parser():
     p.add_argument("--tasks", nargs="+", required=True)
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--tune", action="store_true",
+                   help="a tuning sweep: it runs on tuning seeds only (100 and up, "
+                        "--seed-start 100), disjoint from the seeds the tables report; "
+                        "reporting seeds are refused (bench/seeds.py)")
     p.add_argument("--out", default=None, help=_OUT_HELP)
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local: cells on this machine (--workers at a time); ray: cells as "
@@ -490,6 +505,10 @@ def build_parser():
     p.set_defaults(fn=cmd_quick)
     p = sub.add_parser("leaderboard", help="aggregate the store into a table")
     p.add_argument("--out", default=None, help=_OUT_HELP)
+    p.add_argument("--zero-shot", default=None, metavar="STORE",
+                   help="a store of runs trained in the nominal dynamics and swept with "
+                        "--transfer: writes adaptation.md, this store's changed-dynamics "
+                        "runs beside those runs scored in the same dynamics")
     p.set_defaults(fn=cmd_leaderboard)
     p = sub.add_parser("reindex", help="rename a store's records to the current run-id "
                        "scheme (after an ildbench upgrade), so sweeps find them")

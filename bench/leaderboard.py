@@ -36,7 +36,8 @@ COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "transfer_std", "auc_mean", "t50_mean", "t50_reached", "t90_mean", "t90_reached",
            "return_mean", "paper_return", "paper_expert", "diverged", "failed",
            "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
-           "below_zero_action", "version", "stale", "dynamics", "nominal_mean"]
+           "below_zero_action", "version", "stale", "dynamics", "nominal_mean",
+           "tuning_runs_left_out"]
 DYNAMICS_COLUMNS = ["dynamics", "nominal_mean"]
 """Shown (markdown) and written (CSV) only for a store that holds runs trained in changed
 dynamics (`--train-dynamics`)."""
@@ -140,13 +141,28 @@ def _mean(col: pd.Series) -> float:
 
 
 def leaderboard(store: Store) -> pd.DataFrame:
-    frame = records_frame(store)
-    return board(frame, task_floors(frame.task))
+    frame, left_out = reporting_runs(records_frame(store))
+    return board(frame, task_floors(frame.task), tuning_runs_left_out=left_out)
 
 
-def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFrame:
+def reporting_runs(frame: pd.DataFrame) -> tuple[pd.DataFrame, int]:
+    """The runs a report reads, and how many tuning runs it left out: a store that holds
+    runs on reporting seeds reports those only (bench/seeds.py); a store of tuning runs only
+    is its own report."""
+    from bench.seeds import is_tuning
+    if frame.empty:
+        return frame, 0
+    tuning = frame.seed.map(is_tuning).astype(bool)
+    if tuning.all() or not tuning.any():
+        return frame, 0
+    return frame[~tuning].reset_index(drop=True), int(tuning.sum())
+
+
+def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
+          tuning_runs_left_out: int = 0) -> pd.DataFrame:
     """The leaderboard of a records_frame, with each task's floor rows (`floors`: task ->
-    bench.floors entry) and the marks that read them."""
+    bench.floors entry) and the marks that read them; `tuning_runs_left_out` (from
+    `reporting_runs`) is carried for the notes."""
     if df.empty:
         return pd.DataFrame(columns=COLUMNS)
     floors = floors or {}
@@ -198,6 +214,8 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> pd.DataFra
                         "stale": False, "dynamics": NOMINAL,
                         "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
                         "paper_return": float("nan"), "paper_expert": float("nan")})
+    for row in out:
+        row["tuning_runs_left_out"] = tuning_runs_left_out
     return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
                                                           ascending=[True, False])
 
@@ -288,6 +306,11 @@ def notes(board: pd.DataFrame) -> str:
                      "'nominal': the task itself); its normalized score is against the expert "
                      "and the random policy in those dynamics, and 'nominal' is the same final "
                      "policies' score in the nominal dynamics. The floors are nominal ones.")
+    left_out = int(board.tuning_runs_left_out.fillna(0).max()) if len(board) else 0
+    if left_out:
+        from bench.seeds import TUNING_SEED_START
+        lines.append(f"{left_out} tuning run(s) (seeds {TUNING_SEED_START} and up) are left "
+                     "out: the table reports the reporting seeds only (bench/seeds.py).")
     if weak:
         lines.append(f"Weakly discriminative (zero_action above {WEAK_ABOVE} normalized): "
                      f"{', '.join(weak)}.")
@@ -304,6 +327,7 @@ def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:
         if renders:  # made by `ildbench render`; linked here
             f.write("\nRenders (expert demo next to a final policy): " +
                     ", ".join(f"[{n[7:-5]}]({n})" for n in renders) + "\n")
-    (board if _changed_dynamics(board) else board.drop(columns=DYNAMICS_COLUMNS)).to_csv(
-        csv, index=False)
+    drop = ([] if _changed_dynamics(board) else DYNAMICS_COLUMNS) + (
+        [] if board.tuning_runs_left_out.fillna(0).any() else ["tuning_runs_left_out"])
+    board.drop(columns=drop).to_csv(csv, index=False)
     return md, csv

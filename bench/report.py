@@ -12,6 +12,9 @@
     paper_comparison.md/.csv
                             our scores beside the paper's Table 2, one table per budget
                             (bench.paper.comparison)
+    adaptation.md/.csv      with a zero-shot store: runs trained in changed dynamics beside
+                            nominal-trained runs scored in the same dynamics
+                            (bench.adaptation)
 
 Aggregates use one variant per (method, task): the one with the most scored seeds, and
 among equals the one with the newest run (a store may hold older or differently-configured
@@ -257,13 +260,16 @@ def paper_tables(board: pd.DataFrame, matched: pd.DataFrame) -> dict[str, list[d
     return tables
 
 
-def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
-    """Every report file from one read of the store; leaderboard.md comes first."""
+def write_report(store: Store, out_dir: str, reps: int = 2000,
+                 zero_shot: Store | None = None) -> list[str]:
+    """Every report file from one read of the store; leaderboard.md comes first. With
+    `zero_shot` (a store of nominal-trained runs with transfer evaluations), the adaptation
+    table of the store's changed-dynamics runs as well."""
     from bench import sample_matched
     from bench.paper import comparison_markdown
-    frame = lb.records_frame(store)
+    frame, left_out = lb.reporting_runs(lb.records_frame(store))
     floors = lb.task_floors(frame.task)
-    board = lb.board(frame, floors)
+    board = lb.board(frame, floors, tuning_runs_left_out=left_out)
     paths = list(lb.write(board, out_dir))
     if not frame.empty:
         matched = sample_matched.table(frame)
@@ -291,4 +297,13 @@ def write_report(store: Store, out_dir: str, reps: int = 2000) -> list[str]:
             pd.concat([agg, imp], ignore_index=True).to_csv(p, index=False)
             paths.append(p)
         paths += curve_plots(frame, out_dir)
+        if zero_shot is not None:
+            from bench import adaptation
+            adapted = adaptation.table(store.records(), zero_shot.records())
+            if not adapted.empty:
+                p = os.path.join(out_dir, "adaptation.md")
+                with open(p, "w") as f:
+                    f.write(adaptation.to_markdown(adapted))
+                adapted.to_csv(os.path.join(out_dir, "adaptation.csv"), index=False)
+                paths += [p, os.path.join(out_dir, "adaptation.csv")]
     return paths

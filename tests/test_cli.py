@@ -163,3 +163,14 @@ def test_the_command_line_starts_without_the_simulation_stack():
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_a_tuning_sweep_refuses_reporting_seeds_and_runs_on_tuning_seeds(capsys, tmp_path):
+    """Fault it catches: a sweep marked --tune that runs on seeds 0..N-1, the seeds the tables
+    report, so a setting chosen by score is scored on the seeds it was chosen on."""
+    base = ("sweep", "--methods", "bc", "--tasks", "pointmass", "--budget", "60s", "--tune",
+            "--dry-run", "--store", str(tmp_path / "runs"))
+    code, _, err = _run(capsys, *base, "--seeds", "2", "--seed-start", "99")
+    assert code == 2 and "seeds [99] are reporting seeds" in err and "--seed-start 100" in err
+    code, out, _ = _run(capsys, *base, "--seeds", "2", "--seed-start", "100")
+    assert code == 0 and "plan: 2 cells" in out and "seed 100" in out and "seed 101" in out

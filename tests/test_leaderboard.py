@@ -270,3 +270,32 @@ def test_a_cell_made_by_an_older_method_version_is_marked_stale(store):
     assert dict(zip(board.version, board.stale)) == {"1": True, "2": False}
     md = lb.to_markdown(board)
     assert md.count("dac§") == 1 and "dac version 1 (now 2)" in md
+
+
+def _seeded(store, rid, seed, norm):
+    store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
+                 "status": "ok", "final_normalized": norm, "final_return": norm,
+                 "uses": {"demo_states": True}, "reference_method": False,
+                 "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                            "evals": 10}, "train_s": 1.0})
+
+
+def test_tuning_runs_are_left_out_of_a_table_of_reporting_runs(store):
+    """Fault it catches: runs on tuning seeds (100 and up) pooled with the reporting seeds, so
+    the runs a setting was chosen on enter the score it is reported with."""
+    _seeded(store, "a", 0, 0.2)
+    _seeded(store, "b", 1, 0.4)
+    _seeded(store, "t", 100, 1.0)
+    board = lb.leaderboard(store)
+    row = board[~board.floor].iloc[0]
+    assert row.seeds == 2 and row.normalized_mean == pytest.approx(0.3)
+    assert "1 tuning run(s) (seeds 100 and up) are left out" in lb.to_markdown(board)
+
+
+def test_a_store_of_tuning_runs_only_is_its_own_report(store):
+    _seeded(store, "t0", 100, 1.0)
+    _seeded(store, "t1", 101, 0.5)
+    board = lb.leaderboard(store)
+    row = board[~board.floor].iloc[0]
+    assert row.seeds == 2 and row.normalized_mean == pytest.approx(0.75)
+    assert "left out" not in lb.to_markdown(board)
