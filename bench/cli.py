@@ -221,8 +221,8 @@ def starved_note(store_dir: str, methods, tasks) -> str:
 def cmd_leaderboard(args):
     from bench.report import write_report
     from bench.store import Store
-    zero_shot = None
-    if args.zero_shot is not None:
+    zero_shot = None  # a sweep's report has none: its arguments have no --zero-shot
+    if getattr(args, "zero_shot", None) is not None:
         if not os.path.isdir(args.zero_shot):
             print(f"error: --zero-shot store {args.zero_shot!r} is not a directory; name a "
                   "store of nominal-trained runs swept with --transfer (e.g. "

@@ -61,6 +61,13 @@ class EvalResult:
         return None if self.normalized is None else float(np.mean(self.normalized))
 
     @property
+    def mean_length(self) -> float:
+        """Mean steps before termination: below the episode length where episodes end
+        early (a fallen hopper, humanoid or ant), which explains a return below the
+        random policy's better than the return can."""
+        return float(np.mean(self.lengths))
+
+    @property
     def finite(self) -> bool:
         return bool(np.isfinite(self.returns).all())
 

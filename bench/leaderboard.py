@@ -37,7 +37,7 @@ COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "return_mean", "paper_return", "paper_expert", "diverged", "failed",
            "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
            "below_zero_action", "version", "stale", "dynamics", "nominal_mean",
-           "tuning_runs_left_out"]
+           "tuning_runs_left_out", "length_mean", "random_length"]
 DYNAMICS_COLUMNS = ["dynamics", "nominal_mean"]
 """Shown (markdown) and written (CSV) only for a store that holds runs trained in changed
 dynamics (`--train-dynamics`)."""
@@ -90,12 +90,15 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "version": str(r.get("method_version")),
                      "updates": (r.get("train_metrics") or {}).get("train/updates"),
                      "dynamics": (r.get("train_dynamics") or {}).get("key", NOMINAL),
-                     "nominal": (r.get("nominal") or {}).get("normalized")})
+                     "nominal": (r.get("nominal") or {}).get("normalized"),
+                     "length": (curve[-1].get("length") if curve and r["status"] == "ok"
+                                else None)})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
                                        "normalized", "return", "transfer", "uses",
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
                                        "curve", "horizon", "started", "env_steps", "budget_steps",
-                                       "version", "updates", "dynamics", "nominal"])
+                                       "version", "updates", "dynamics", "nominal",
+                                       "length"])
 
 
 def _median(col: pd.Series) -> float:
@@ -192,7 +195,8 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
                     "updates_median": _median(scored.updates),
                     "min_env_steps": _min_env_steps(method), "floor": False,
                     "version": g.version.iloc[0], "dynamics": dyn,
-                    "nominal_mean": scored.nominal.astype(float).mean()})
+                    "nominal_mean": scored.nominal.astype(float).mean(),
+                    "length_mean": scored.length.astype(float).mean()})
     for row in out:
         need, steps = row["min_env_steps"], row["env_steps_median"]
         row["starved"] = bool(need is not None and pd.notna(steps) and steps < need)
@@ -207,15 +211,19 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
         if task not in set(df.task):
             continue
         for name, v in entry.items():
+            if name == "random":  # the normalization's zero: a row of 0.000 says nothing
+                continue
             out.append({"task": task, "method": name, "variant": "-", "uses": "-",
                         "reference": False, "budget": "-", "seeds": 0,
                         "normalized_mean": v["normalized"], "return_mean": v["return"],
                         "floor": True, "starved": False, "below_zero_action": False,
-                        "stale": False, "dynamics": NOMINAL,
+                        "stale": False, "dynamics": NOMINAL, "length_mean": v.get("length"),
                         "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
                         "paper_return": float("nan"), "paper_expert": float("nan")})
     for row in out:
         row["tuning_runs_left_out"] = tuning_runs_left_out
+        row["random_length"] = (floors.get(row["task"], {}).get("random", {}).get("length")
+                                if row["dynamics"] == NOMINAL else None)  # nominal floors
     return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
                                                           ascending=[True, False])
 
@@ -273,6 +281,20 @@ def _changed_dynamics(board: pd.DataFrame) -> bool:
     return bool((board.dynamics.fillna(NOMINAL) != NOMINAL).any())
 
 
+def _below_random(row) -> str:
+    """Why one cell scores below the random policy, read from episode lengths: a policy that
+    ends its episodes earlier (a fall) loses the per-step reward that random actions keep
+    collecting; one that lasts as long collects less reward per step."""
+    cell = f"{row.method} on {row.task}"
+    if pd.isna(row.length_mean):
+        return f"{cell} (its records hold no episode lengths)"
+    if pd.isna(row.random_length):
+        return f"{cell}: {row.length_mean:.0f} steps"
+    why = ("it ends its episodes earlier" if row.length_mean < row.random_length - 0.5
+           else "as long: less reward per step")
+    return f"{cell}: {row.length_mean:.0f} steps vs {row.random_length:.0f}, {why}"
+
+
 def notes(board: pd.DataFrame) -> str:
     """The table's footnotes: the marks, and the weakly discriminative tasks."""
     from bench.floors import WEAK_ABOVE
@@ -306,6 +328,13 @@ def notes(board: pd.DataFrame) -> str:
                      "'nominal': the task itself); its normalized score is against the expert "
                      "and the random policy in those dynamics, and 'nominal' is the same final "
                      "policies' score in the nominal dynamics. The floors are nominal ones.")
+    below = board[~board.floor.fillna(False).astype(bool)
+                  & ~board.reference.fillna(False).astype(bool)
+                  & (board.normalized_mean.astype(float) < 0)]
+    if len(below):
+        lines.append("Below the random policy (normalized < 0), with the mean steps its "
+                     "episodes last before termination against the random policy's: "
+                     + "; ".join(_below_random(r) for r in below.itertuples()) + ".")
     left_out = int(board.tuning_runs_left_out.fillna(0).max()) if len(board) else 0
     if left_out:
         from bench.seeds import TUNING_SEED_START

@@ -277,6 +277,7 @@ class RunContext:
         self.last_trajectory = res.trajectory
         point = {"train_s": round(self.elapsed(), 3), "env_steps": int(env_steps),
                  "return": res.mean_return, "normalized": res.mean_normalized,
+                 "length": res.mean_length,
                  # the method's last reported training metrics: loss beside score over time
                  "train": dict(self.last_metrics)}
         self.curve.append(point)
@@ -411,7 +412,8 @@ def execute(p: Prepared, store: Store, force: bool = False,
                 res = Evaluator(task, req.eval, p.demo.expert_return, p.demo.random_return,
                                 allow_sim_at_test=spec.uses.sim_at_test).evaluate(
                                     result.policy, req.seed)
-            nominal = {"return": res.mean_return, "normalized": res.mean_normalized}
+            nominal = {"return": res.mean_return, "normalized": res.mean_normalized,
+                       "length": res.mean_length}
             log(f"  nominal dynamics: return {_fmt(nominal['return'], 2)}, normalized "
                 f"{_fmt(nominal['normalized'], 3)}")
         if req.eval.transfer or req.eval.robustness:

@@ -100,7 +100,7 @@ def evaluate_transfer(task: Task, demo: Demo, policy: Policy, seed: int, config:
         res = ev.evaluate(policy, seed)
         out[p.key] = {"family": p.family, "magnitude": p.magnitude,
                       "return": res.mean_return, "normalized": res.mean_normalized,
-                      "expert_return": r_exp, "random_return": r_rand}
+                      "length": res.mean_length, "expert_return": r_exp, "random_return": r_rand}
     return out
 
 

@@ -272,14 +272,10 @@ def test_an_atomic_write_that_fails_keeps_the_old_file_and_leaves_no_temp_file(t
 # ----------------------------------------------------------------------------- evaluator
 
 
-def test_an_early_terminating_host_policy_keeps_its_partial_return():
-    """The evaluator's host path (DAC, PWIL) on a task that terminates (pointmass ended once
-    x > 1.2): each episode's return is the sum of its rewards up to and including the
-    terminal step, its length the steps taken, the same as the JAX path's and as a plain
-    loop's. Planted fault: the host path adding rewards after done."""
+def _terminating_pointmass():
+    """pointmass whose episode ends once x > 1.2 (pointmass itself never terminates)."""
     from brax.envs.base import Wrapper
 
-    from bench.evaluator import run_episodes
     from tasks.core import Task
 
     class Terminating(Wrapper):
@@ -288,7 +284,16 @@ def test_an_early_terminating_host_policy_keeps_its_partial_return():
             return s.replace(done=jnp.asarray(s.obs[0] > 1.2, jnp.float32))
 
     base = make_task("pointmass")
-    task = Task(spec=base.spec, env=Terminating(base.env))
+    return Task(spec=base.spec, env=Terminating(base.env))
+
+
+def test_an_early_terminating_host_policy_keeps_its_partial_return():
+    """The evaluator's host path (DAC, PWIL) on a task that terminates (pointmass ended once
+    x > 1.2): each episode's return is the sum of its rewards up to and including the
+    terminal step, its length the steps taken, the same as the JAX path's and as a plain
+    loop's. Planted fault: the host path adding rewards after done."""
+    from bench.evaluator import run_episodes
+    task = _terminating_pointmass()
 
     def push(params, obs, key_or_rng, deterministic):
         return np.full(np.shape(obs)[:-1] + (1,), 0.8, np.float32)
@@ -309,6 +314,23 @@ def test_an_early_terminating_host_policy_keeps_its_partial_return():
         if float(s.done) > 0:
             break
     assert n == len_h[0] and total == pytest.approx(ret_h[0], rel=1e-5)
+
+
+def test_each_evaluation_records_the_mean_steps_before_termination():
+    """A run's evaluation points carry the mean episode length, the evidence that a policy
+    scoring below the random one falls earlier. On pointmass ended once x > 1.2, a constant
+    push of 0.8 ends every episode early. Planted fault: the point's length read as the
+    task's episode length instead of the steps taken."""
+    from bench.evaluator import EvalConfig, Evaluator, eval_key, run_episodes
+    from bench.runner import RunContext
+    task = _terminating_pointmass()
+    push = Policy(lambda p, o, k, d: jnp.full(o.shape[:-1] + (1,), 0.8), 0.0)
+    ctx = RunContext(Budget(env_steps=10), Evaluator(task, EvalConfig(num_episodes=4), 1.0,
+                                                     0.0), 5)
+    point = ctx.evaluate(push, 0)
+    _, lengths, _ = run_episodes(task, push, eval_key(5), 4, True)
+    assert 0 < point["length"] < task.episode_length
+    assert point["length"] == pytest.approx(float(np.mean(lengths)))
 
 
 # ----------------------------------------------------------------------------- perturbations

@@ -199,6 +199,11 @@ def test_floors_on_pointmass_equal_their_hand_computed_returns(tmp_path):
     assert got["zero_action"]["normalized"] == pytest.approx(float(demo.normalize(zero)),
                                                              rel=1e-4)
     assert floors(task, demo, ref_dir=str(tmp_path), compute=False) == got  # read back
+    # the random policy on the same episodes is the demo's own random reference, exactly,
+    # and pointmass never terminates: every episode lasts the task's length
+    assert got["random"]["return"] == pytest.approx(demo.random_return, rel=1e-9)
+    assert got["random"]["normalized"] == pytest.approx(0.0, abs=1e-9)
+    assert {v["length"] for v in got.values()} == {float(task.episode_length)}
 
 
 def _steps_rec(store, rid, method, seed, norm, steps, updates):
@@ -299,3 +304,29 @@ def test_a_store_of_tuning_runs_only_is_its_own_report(store):
     row = board[~board.floor].iloc[0]
     assert row.seeds == 2 and row.normalized_mean == pytest.approx(0.75)
     assert "left out" not in lb.to_markdown(board)
+
+
+def test_a_cell_below_random_is_explained_by_its_episode_lengths(store):
+    """A cell below the random policy is named in the notes with the mean steps its
+    episodes last against the random policy's (the floors' `random` entry, not printed as
+    a row). Planted fault: the length read from the first evaluation instead of the final
+    one."""
+    for seed, length in ((0, 20.0), (1, 30.0)):
+        store.write({"run_id": f"f{seed}", "task": "pointmass", "method": "pwil", "seed": seed,
+                     "status": "ok", "final_normalized": -0.5, "final_return": 1.0,
+                     "curve": [{"train_s": 1.0, "env_steps": 10, "normalized": 0.0,
+                                "length": 128.0},
+                               {"train_s": 2.0, "env_steps": 20, "normalized": -0.5,
+                                "length": length}],
+                     "uses": {}, "reference_method": False,
+                     "budget": {"seconds": 60.0, "env_steps": None, "charge_compile": True,
+                                "evals": 2}, "env_steps": 20})
+    floors = {"pointmass": {"zero_action": {"return": -50.0, "normalized": 0.2, "length": 90},
+                            "demo_replay": {"return": -30.0, "normalized": 0.7},
+                            "random": {"return": -60.0, "normalized": 0.0, "length": 88.0}}}
+    board = lb.board(lb.records_frame(store), floors)
+    assert sorted(board[board.floor].method) == ["demo_replay", "zero_action"]
+    cell = board[board.method == "pwil"].iloc[0]
+    assert cell.length_mean == pytest.approx(25.0) and cell.random_length == 88.0
+    assert "pwil on pointmass: 25 steps vs 88, it ends its episodes earlier" in \
+        lb.to_markdown(board)
