@@ -19,9 +19,6 @@ The budgets are printed per side, and the notes say where they differ.
 """
 from __future__ import annotations
 
-from collections import defaultdict
-from typing import Iterable
-
 import numpy as np
 import pandas as pd
 
@@ -30,77 +27,44 @@ COLUMNS = ["task", "dynamics", "method", "seeds", "adapted_mean", "adapted_std",
            "zero_shot_nominal", "gain", "budget", "zero_shot_budget"]
 
 
-def _scored(record: dict) -> bool:
-    return record.get("status") == "ok"
-
-
-def _reporting(records: Iterable[dict]) -> list[dict]:
-    """The records on reporting seeds where there are any (bench/seeds.py)."""
-    from bench.seeds import is_tuning
-    records = list(records)
-    report = [r for r in records if not is_tuning(r["seed"])]
-    return report or records
-
-
-def _main(groups: dict[tuple, list[dict]]) -> dict[tuple, list[dict]]:
-    """Per (task, method): the variant group with the most records, ties to the newest."""
-    best: dict[tuple, list[dict]] = {}
-    for (task, method, _), recs in sorted(groups.items()):
-        cur = best.get((task, method))
-        rank = (len(recs), max(r.get("started") or "" for r in recs))
-        if cur is None or rank > (len(cur), max(r.get("started") or "" for r in cur)):
-            best[(task, method)] = recs
-    return best
-
-
-def _budget(recs: list[dict]) -> str:
-    from bench.budget import Budget
-    return ", ".join(sorted({Budget(**r["budget"]).describe() for r in recs}))
-
-
-def _stats(values: list[float]) -> tuple[float, float]:
-    v = np.asarray(values, float)
+def _stats(values: pd.Series) -> tuple[float, float]:
+    v = values.astype(float).to_numpy()
+    if not len(v):
+        return float("nan"), float("nan")
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else float("nan")
 
 
-def table(adapted: Iterable[dict], zero_shot: Iterable[dict]) -> pd.DataFrame:
-    """One row per (task, method) that has runs trained in changed dynamics in `adapted`
-    (records); the zero-shot columns are NaN where `zero_shot` (records) holds no nominal run
-    of that method on that task with a transfer entry for the same dynamics."""
-    from bench.leaderboard import variant
-    adapted, zero_shot = _reporting(adapted), _reporting(zero_shot)
-    groups: dict[tuple, list[dict]] = defaultdict(list)
-    for r in adapted:
-        if _scored(r) and r.get("train_dynamics"):
-            groups[(r["task"], r["method"], variant(r))].append(r)
-    main = _main(groups)
-    keys = {(t, m): recs[0]["train_dynamics"]["key"] for (t, m), recs in main.items()}
-    zgroups: dict[tuple, list[dict]] = defaultdict(list)
-    for r in zero_shot:
-        key = keys.get((r.get("task"), r.get("method")))
-        if (key is None or not _scored(r) or r.get("train_dynamics")
-                or ((r.get("transfer") or {}).get(key) or {}).get("normalized") is None):
-            continue
-        zgroups[(r["task"], r["method"], variant(r))].append(r)
-    zmain = _main(zgroups)
+def _budgets(g: pd.DataFrame) -> str:
+    return ", ".join(sorted(set(g.budget)))
+
+
+def table(adapted: pd.DataFrame, zero_shot: pd.DataFrame) -> pd.DataFrame:
+    """One row per (task, method) that has runs trained in changed dynamics in `adapted`;
+    the zero-shot columns are NaN where `zero_shot` holds no nominal run of that method on
+    that task with a transfer entry for the same dynamics. Both are
+    bench.leaderboard.records_frame's; each side keeps its reporting runs
+    (`leaderboard.reporting_runs`) and its main variant (`report.main_variants`)."""
+    from bench.leaderboard import NOMINAL, reporting_runs
+    from bench.report import main_variants
+    a = reporting_runs(adapted)[0]
+    a = main_variants(a[(a.status == "ok") & (a.dynamics != NOMINAL)])
+    keys = {(t, m): k for t, m, k in zip(a.task, a.method, a.dynamics)}
+    z = reporting_runs(zero_shot)[0]
+    z = z.assign(zero_shot=[(entries or {}).get(keys.get((t, m))) for t, m, entries in
+                            zip(z.task, z.method, z.transfer_by_key)])
+    z = main_variants(z[(z.status == "ok") & (z.dynamics == NOMINAL) & z.zero_shot.notna()])
     rows = []
-    for (task, method), recs in sorted(main.items()):
-        key = keys[(task, method)]
-        a_mean, a_std = _stats([r["final_normalized"] for r in recs])
-        nominal = [(r.get("nominal") or {}).get("normalized") for r in recs]
-        nominal = [v for v in nominal if v is not None]
-        zs = zmain.get((task, method), [])
-        z_mean, z_std = (_stats([r["transfer"][key]["normalized"] for r in zs]) if zs
-                         else (float("nan"), float("nan")))
+    for (task, method), g in a.groupby(["task", "method"]):
+        zs = z[(z.task == task) & (z.method == method)]
+        a_mean, a_std = _stats(g.normalized)
+        z_mean, z_std = _stats(zs.zero_shot)
         rows.append({
-            "task": task, "dynamics": key, "method": method, "seeds": len(recs),
-            "adapted_mean": a_mean, "adapted_std": a_std,
-            "adapted_nominal": float(np.mean(nominal)) if nominal else float("nan"),
+            "task": task, "dynamics": keys[(task, method)], "method": method,
+            "seeds": len(g), "adapted_mean": a_mean, "adapted_std": a_std,
+            "adapted_nominal": _stats(g.nominal.dropna())[0],
             "zero_shot_seeds": len(zs), "zero_shot_mean": z_mean, "zero_shot_std": z_std,
-            "zero_shot_nominal": (float(np.mean([r["final_normalized"] for r in zs])) if zs
-                                  else float("nan")),
-            "gain": a_mean - z_mean, "budget": _budget(recs),
-            "zero_shot_budget": _budget(zs) if zs else ""})
+            "zero_shot_nominal": _stats(zs.normalized)[0],
+            "gain": a_mean - z_mean, "budget": _budgets(g), "zero_shot_budget": _budgets(zs)})
     return pd.DataFrame(rows, columns=COLUMNS)
 
 

@@ -91,6 +91,9 @@ def records_frame(store: Store) -> pd.DataFrame:
                      "updates": (r.get("train_metrics") or {}).get("train/updates"),
                      "dynamics": (r.get("train_dynamics") or {}).get("key", NOMINAL),
                      "nominal": (r.get("nominal") or {}).get("normalized"),
+                     "transfer_by_key": {k: v["normalized"] for k, v in
+                                         (r.get("transfer") or {}).items()
+                                         if v.get("normalized") is not None},
                      "length": (curve[-1].get("length") if curve and r["status"] == "ok"
                                 else None)})
     return pd.DataFrame(rows, columns=["task", "method", "variant", "seed", "status",
@@ -98,7 +101,7 @@ def records_frame(store: Store) -> pd.DataFrame:
                                        "reference", "budget", "train_s", "auc", "t50", "t90",
                                        "curve", "horizon", "started", "env_steps", "budget_steps",
                                        "version", "updates", "dynamics", "nominal",
-                                       "length"])
+                                       "transfer_by_key", "length"])
 
 
 def _median(col: pd.Series) -> float:

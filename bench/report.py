@@ -299,7 +299,7 @@ def write_report(store: Store, out_dir: str, reps: int = 2000,
         paths += curve_plots(frame, out_dir)
         if zero_shot is not None:
             from bench import adaptation
-            adapted = adaptation.table(store.records(), zero_shot.records())
+            adapted = adaptation.table(frame, lb.records_frame(zero_shot))
             if not adapted.empty:
                 p = os.path.join(out_dir, "adaptation.md")
                 with open(p, "w") as f:

@@ -5,6 +5,7 @@ import pytest
 
 from bench import adaptation
 from bench.cli import main
+from bench.leaderboard import records_frame
 from bench.store import Store
 
 BUDGET = {"seconds": 180.0, "env_steps": None, "charge_compile": True, "evals": 1}
@@ -25,14 +26,26 @@ def _zero_shot(method, seed, norm, transfer, task="hopper", budget=BUDGET, key="
             "started": f"2026-01-0{seed + 1}"}
 
 
-def test_adapted_and_zero_shot_scores_pool_over_seeds_on_the_same_dynamics():
+def _frame(tmp_path, name, records):
+    """records_frame of a store holding `records` (the fields a store's reader needs added)."""
+    store = Store(str(tmp_path / name))
+    for r in records:
+        store.write({"uses": {"demo_states": True}, "reference_method": False, **r})
+    return records_frame(store)
+
+
+def _table(tmp_path, adapted, zero_shot):
+    return adaptation.table(_frame(tmp_path, "a", adapted), _frame(tmp_path, "z", zero_shot))
+
+
+def test_adapted_and_zero_shot_scores_pool_over_seeds_on_the_same_dynamics(tmp_path):
     adapted = [_adapted("bc", 0, 0.5, 0.9), _adapted("bc", 1, 0.7, 0.8),
                _adapted("bc", 2, None, None, status="failed"),  # not scored
                _adapted("dac", 0, 0.2, 0.1)]
     zero_shot = [_zero_shot("bc", 0, 1.0, 0.2), _zero_shot("bc", 1, 0.8, 0.4),
                  _zero_shot("bc", 2, 0.9, 0.3),
                  _zero_shot("bc", 3, 0.9, 0.3, task="ant")]  # another task: not read
-    df = adaptation.table(adapted, zero_shot).set_index("method")
+    df = _table(tmp_path, adapted, zero_shot).set_index("method")
     bc = df.loc["bc"]
     assert bc.seeds == 2 and bc.zero_shot_seeds == 3 and bc.dynamics == "actuator=-0.3"
     assert bc.adapted_mean == pytest.approx(0.6)
@@ -44,16 +57,17 @@ def test_adapted_and_zero_shot_scores_pool_over_seeds_on_the_same_dynamics():
     assert bc.gain == pytest.approx(0.3)
     dac = df.loc["dac"]  # no zero-shot runs of DAC: its zero-shot side is empty, not zero
     assert dac.zero_shot_seeds == 0 and np.isnan(dac.zero_shot_mean) and np.isnan(dac.gain)
-    md = adaptation.to_markdown(adaptation.table(adapted, zero_shot))
+    md = adaptation.to_markdown(_table(tmp_path, adapted, zero_shot))
     assert "0.60 ± 0.14" in md and "+0.30" in md and "No zero-shot runs for: dac on hopper" in md
     assert "Both sides trained for 180s" in md
 
 
-def test_a_zero_shot_run_without_that_dynamics_entry_is_not_read_and_budgets_are_compared():
+def test_a_zero_shot_run_without_that_dynamics_entry_is_not_read_and_budgets_are_compared(
+        tmp_path):
     adapted = [_adapted("bc", 0, 0.5, 0.9)]
     other = _zero_shot("bc", 0, 1.0, 0.2, key="action_bias=0.1")  # the wrong family
     short = _zero_shot("bc", 1, 1.0, 0.4, budget={**BUDGET, "seconds": 60.0})
-    df = adaptation.table(adapted, [other, short])
+    df = _table(tmp_path, adapted, [other, short])
     assert df.zero_shot_seeds.iloc[0] == 1 and df.zero_shot_mean.iloc[0] == pytest.approx(0.4)
     md = adaptation.to_markdown(df)
     assert "budgets differ: adapted 180s, zero-shot 60s" in md
@@ -67,7 +81,8 @@ def test_leaderboard_writes_the_adaptation_table_and_refuses_a_missing_zero_shot
     for r in [_adapted("bc", 0, 0.5, 0.9), _adapted("bc", 1, 0.7, 0.8)]:
         a.write({**r, "uses": {"demo_states": True, "demo_actions": True},
                  "reference_method": False, "final_return": 1.0, "train_s": 1.0})
-    z.write(_zero_shot("bc", 0, 1.0, 0.2))
+    z.write({**_zero_shot("bc", 0, 1.0, 0.2), "uses": {"demo_states": True},
+             "reference_method": False})
     out = tmp_path / "out"
     assert main(["leaderboard", "--store", a.root, "--out", str(out), "--zero-shot",
                  str(tmp_path / "nowhere")]) == 2
@@ -78,7 +93,7 @@ def test_leaderboard_writes_the_adaptation_table_and_refuses_a_missing_zero_shot
     assert "0.60 ± 0.14" in text and "+0.40" in text  # 0.6 adapted vs 0.2 zero-shot
 
 
-def test_tuning_runs_are_left_out_where_reporting_runs_exist():
+def test_tuning_runs_are_left_out_where_reporting_runs_exist(tmp_path):
     tuning = {**_adapted("bc", 0, 1.0, 1.0), "seed": 100, "run_id": "t"}
-    df = adaptation.table([_adapted("bc", 0, 0.5, 0.9), tuning], [])
+    df = _table(tmp_path, [_adapted("bc", 0, 0.5, 0.9), tuning], [])
     assert df.seeds.iloc[0] == 1 and df.adapted_mean.iloc[0] == pytest.approx(0.5)
