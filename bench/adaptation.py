@@ -43,9 +43,8 @@ def table(adapted: pd.DataFrame, zero_shot: pd.DataFrame) -> pd.DataFrame:
     the zero-shot columns are NaN where `zero_shot` holds no nominal run of that method on
     that task with a transfer entry for the same dynamics. Both are
     bench.leaderboard.records_frame's; each side keeps its reporting runs
-    (`leaderboard.reporting_runs`) and its main variant (`report.main_variants`)."""
-    from bench.leaderboard import NOMINAL, reporting_runs
-    from bench.report import main_variants
+    (`leaderboard.reporting_runs`) and its main variant (`leaderboard.main_variants`)."""
+    from bench.leaderboard import NOMINAL, main_variants, reporting_runs
     a = reporting_runs(adapted)[0]
     a = main_variants(a[(a.status == "ok") & (a.dynamics != NOMINAL)])
     keys = {(t, m): k for t, m, k in zip(a.task, a.method, a.dynamics)}

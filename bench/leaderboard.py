@@ -37,7 +37,7 @@ COLUMNS = ["task", "method", "variant", "uses", "reference", "budget", "seeds",
            "return_mean", "paper_return", "paper_expert", "diverged", "failed",
            "env_steps_median", "updates_median", "min_env_steps", "starved", "floor",
            "below_zero_action", "version", "stale", "dynamics", "nominal_mean",
-           "tuning_runs_left_out", "length_mean", "random_length"]
+           "length_mean", "random_length"]
 DYNAMICS_COLUMNS = ["dynamics", "nominal_mean"]
 """Shown (markdown) and written (CSV) only for a store that holds runs trained in changed
 dynamics (`--train-dynamics`)."""
@@ -164,11 +164,26 @@ def reporting_runs(frame: pd.DataFrame) -> tuple[pd.DataFrame, int]:
     return frame[~tuning].reset_index(drop=True), int(tuning.sum())
 
 
+def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
+    """Rows of the variant with the most scored runs per (task, method); ties go to the
+    variant with the newest run (then the variant id, so the choice is deterministic)."""
+    scored = frame[frame.status.isin(["ok", "diverged"])]
+    if scored.empty:
+        return scored
+    sizes = (scored.assign(newest=scored.started.fillna("").astype(str))
+             .groupby(["task", "method", "variant"])
+             .agg(n=("seed", "size"), newest=("newest", "max")).reset_index())
+    best = sizes.sort_values(["n", "newest", "variant"], ascending=[False, False, True],
+                             kind="stable").drop_duplicates(["task", "method"])
+    keep = set(zip(best.task, best.method, best.variant))
+    return scored[[k in keep for k in zip(scored.task, scored.method, scored.variant)]]
+
+
 def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
           tuning_runs_left_out: int = 0) -> pd.DataFrame:
     """The leaderboard of a records_frame, with each task's floor rows (`floors`: task ->
     bench.floors entry) and the marks that read them; `tuning_runs_left_out` (from
-    `reporting_runs`) is carried for the notes."""
+    `reporting_runs`) is carried for the notes in the board's `attrs`."""
     if df.empty:
         return pd.DataFrame(columns=COLUMNS)
     floors = floors or {}
@@ -224,11 +239,12 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
                         "t50_reached": 0, "t90_reached": 0, "diverged": 0, "failed": 0,
                         "paper_return": float("nan"), "paper_expert": float("nan")})
     for row in out:
-        row["tuning_runs_left_out"] = tuning_runs_left_out
         row["random_length"] = (floors.get(row["task"], {}).get("random", {}).get("length")
                                 if row["dynamics"] == NOMINAL else None)  # nominal floors
-    return pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
-                                                          ascending=[True, False])
+    table = pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
+                                                           ascending=[True, False])
+    table.attrs["tuning_runs_left_out"] = int(tuning_runs_left_out)
+    return table
 
 
 def _count(v) -> str:
@@ -338,7 +354,7 @@ def notes(board: pd.DataFrame) -> str:
         lines.append("Below the random policy (normalized < 0), with the mean steps its "
                      "episodes last before termination against the random policy's: "
                      + "; ".join(_below_random(r) for r in below.itertuples()) + ".")
-    left_out = int(board.tuning_runs_left_out.fillna(0).max()) if len(board) else 0
+    left_out = board.attrs.get("tuning_runs_left_out", 0)
     if left_out:
         from bench.seeds import TUNING_SEED_START
         lines.append(f"{left_out} tuning run(s) (seeds {TUNING_SEED_START} and up) are left "
@@ -359,7 +375,6 @@ def write(board: pd.DataFrame, out_dir: str) -> tuple[str, str]:
         if renders:  # made by `ildbench render`; linked here
             f.write("\nRenders (expert demo next to a final policy): " +
                     ", ".join(f"[{n[7:-5]}]({n})" for n in renders) + "\n")
-    drop = ([] if _changed_dynamics(board) else DYNAMICS_COLUMNS) + (
-        [] if board.tuning_runs_left_out.fillna(0).any() else ["tuning_runs_left_out"])
+    drop = [] if _changed_dynamics(board) else DYNAMICS_COLUMNS
     board.drop(columns=drop).to_csv(csv, index=False)
     return md, csv

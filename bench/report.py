@@ -56,21 +56,6 @@ def append_csv(rows: list[dict], path: str) -> None:
     df.to_csv(path, index=False)
 
 
-def main_variants(frame: pd.DataFrame) -> pd.DataFrame:
-    """Rows of the variant with the most scored runs per (task, method); ties go to the
-    variant with the newest run (then the variant id, so the choice is deterministic)."""
-    scored = frame[frame.status.isin(["ok", "diverged"])]
-    if scored.empty:
-        return scored
-    sizes = (scored.assign(newest=scored.started.fillna("").astype(str))
-             .groupby(["task", "method", "variant"])
-             .agg(n=("seed", "size"), newest=("newest", "max")).reset_index())
-    best = sizes.sort_values(["n", "newest", "variant"], ascending=[False, False, True],
-                             kind="stable").drop_duplicates(["task", "method"])
-    keep = set(zip(best.task, best.method, best.variant))
-    return scored[[k in keep for k in zip(scored.task, scored.method, scored.variant)]]
-
-
 def _weak_reference(task: str) -> str | None:
     """TaskSpec.weak_reference of a registered task (None for unknown names)."""
     from tasks import TASKS
@@ -80,7 +65,7 @@ def _weak_reference(task: str) -> str | None:
 def aggregates(frame: pd.DataFrame, of: str = "ild", reps: int = 2000
                ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """(aggregate table, improvement table, notes) for 'normalized' and 'transfer'."""
-    chosen = main_variants(frame)
+    chosen = lb.main_variants(frame)
     imitation = chosen[~chosen.reference.astype(bool)]
     tables, improvements, notes = [], [], []
     weak = {t: _weak_reference(t) for t in sorted(imitation.task.unique())
@@ -150,7 +135,7 @@ def _curve_band(runs: list[list[dict]], grid: np.ndarray, x: str = "train_s"
 def curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
     """Anytime curves of the main variant per (task, method), runs with a wall-clock budget;
     the aggregate curve leaves out tasks with a weak expert reference (TaskSpec)."""
-    chosen = main_variants(frame)
+    chosen = lb.main_variants(frame)
     chosen = chosen[chosen.horizon.notna()]
     paths = []
     frac = np.linspace(0, 1, GRID_POINTS)
@@ -189,7 +174,7 @@ def _max_steps(curve) -> float:
 def step_curve_plots(frame: pd.DataFrame, out_dir: str) -> list[str]:
     """Anytime curves against env steps (log axis) of the main variant per (task, method),
     for methods that step the env (BC, which never does, is left out)."""
-    chosen = main_variants(frame)
+    chosen = lb.main_variants(frame)
     paths = []
     for task, per_task in chosen.groupby("task"):
         fig, ax = plt.subplots(figsize=(5, 3.4))

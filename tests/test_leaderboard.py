@@ -63,7 +63,7 @@ def test_different_configs_are_not_pooled(store):
 
 
 def test_aggregates_take_the_variant_with_most_seeds_then_the_newest(store):
-    from bench.report import main_variants
+    from bench.leaderboard import main_variants
     runs = (("a", 0, 1e-3, "2026-01-01"), ("b", 1, 1e-3, "2026-01-02"),
             ("c", 0, 1e-4, "2026-03-01"), ("d", 1, 1e-4, "2026-02-01"))
     for rid, seed, lr, started in runs:
