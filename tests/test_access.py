@@ -36,7 +36,10 @@ def test_undeclared_demo_fields_raise():
         dv.obs
 
 
-def _grad_through_env(env, actions=0.5 * jnp.ones((5, 1))):
+def _grad_through_env(env, actions=None):
+    # built here, not as a default argument: importing this module starts no JAX backend, so
+    # mutmut's fork server (which collects the tests) stays fork-safe (docs/ci.md)
+    actions = 0.5 * jnp.ones((5, 1)) if actions is None else actions
     s0 = env.reset(jax.random.PRNGKey(0))
 
     def f(a):

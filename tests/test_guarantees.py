@@ -200,6 +200,52 @@ def test_compile_time_is_charged_to_the_budget_only_when_configured(temp_method,
 # ----------------------------------------------------------------------------- run ids
 
 
+def test_a_fresh_compile_meter_explains_retraces_only_while_a_clock_runs():
+    """Faults it catches: a compile meter that starts with a stale state (an active clock
+    that is not one, a saved flag) or filters the wrong logger. Then a compilation before any
+    clock crashes the listener, a clock never asks JAX to explain its cache misses (so a
+    training function traced again after a report goes unseen), or closing it does not give
+    the user's flag back. The process keeps one meter (its JAX listeners register once), so
+    the tests that run methods meet only the first; this builds a fresh one."""
+    import logging
+
+    from bench import budget as B
+
+    saved_meter, flag = B._METER, jax.config.jax_explain_cache_misses
+    meter = B._CompileMeter()
+    B._METER = meter
+    try:
+        for name in meter._LOGGERS:
+            assert meter._on_log in logging.getLogger(name).filters, name
+        jax.jit(lambda x: x * 3.0)(jnp.ones(2)).block_until_ready()  # no clock: ignored
+        clock = B.Clock()
+        assert meter.active is clock and jax.config.jax_explain_cache_misses is True
+        f = jax.jit(lambda x: x + 1.0)
+        f(jnp.ones(3)).block_until_ready()
+        assert clock.retraced == {}                  # a first trace is not a retrace
+        clock.interval = 1                           # a report was made
+        f(jnp.ones(4)).block_until_ready()           # traced again (a new shape)
+        assert [v["count"] for v in clock.retraced.values()] == [1]
+        clock.close()
+        assert meter.active is None and jax.config.jax_explain_cache_misses == flag
+    finally:
+        B._METER = saved_meter
+        jax.config.update("jax_explain_cache_misses", flag)
+        for name in meter._LOGGERS:
+            logging.getLogger(name).removeFilter(meter._on_log)
+
+
+def test_a_retrace_explanation_drops_its_call_site_line_and_is_bounded():
+    """Hand-computed: the first line (call site and cost) goes, blank lines go, at most 8
+    lines joined by ' / ', at most 600 characters."""
+    from bench.budget import _why
+    assert _why("TRACING CACHE MISS at f.py:3 costing 1 ms\n  because:\n\n   x changed  \n"
+                ) == "because: / x changed"
+    assert _why("head\n" + "\n".join(f"l{i}" for i in range(20))) == \
+        " / ".join(f"l{i}" for i in range(8))
+    assert _why("head\n" + "x" * 1000) == "x" * 600
+
+
 @pytest.mark.parametrize("method,task,budget,preset,transfer,expect", [
     # The committed 10-minute ILD cell on hopper, seed 0 (results/tenmin/runs).
     ("ild", "hopper", Budget(seconds=600), "cpu", True, "e66ac33f50886650"),

@@ -1,7 +1,8 @@
 """The package layering: `tasks/` (the task registry, envs, physics and demo format) imports
 nothing from `bench/` (the harness), no installed module imports the measurement tools in
 `benchmarks/`, and the installed packages hold no import cycle (lazy imports inside
-functions included: a cycle hidden in a function body is still one)."""
+functions included: a cycle hidden in a function body is still one); and importing the
+mutation run's test modules starts no JAX backend."""
 from __future__ import annotations
 
 import ast
@@ -131,3 +132,26 @@ def test_packaging_installs_the_three_packages_and_their_runtime_data():
     assert os.path.isfile(REFERENCE)
     assert os.path.isfile(os.path.join(REF_DIR, "hopper.json"))
     assert os.path.commonpath([REFERENCE, os.path.join(ROOT, "bench")]) == os.path.join(ROOT, "bench")
+
+
+def test_collecting_the_mutation_tests_starts_no_jax_backend():
+    """Fault it catches: a test module of the mutation run that runs a JAX computation when it
+    is imported (a jnp default argument, a module-level array). mutmut's fork server collects
+    those modules, so its workers would fork from a live XLA backend, whose threads do not
+    survive fork: every mutant whose tests compute with JAX would hang to a timeout, which
+    mutmut counts as killed (docs/ci.md)."""
+    import subprocess
+    import sys
+    import tomllib
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as f:
+        selection = tomllib.load(f)["tool"]["mutmut"]["pytest_add_cli_args_test_selection"]
+    probe = ("import importlib, sys\n"
+             "sys.path.insert(0, '.')\n"
+             "from jax._src import xla_bridge\n"
+             "for path in sys.argv[1:]:\n"
+             "    importlib.import_module(path[:-3].replace('/', '.'))\n"
+             "print('backends started:', bool(xla_bridge._backends))\n")
+    out = subprocess.run([sys.executable, "-c", probe, *selection], cwd=ROOT,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "backends started: False"

@@ -259,6 +259,8 @@ def test_final_policy_trajectory_is_stored_beside_the_record(toy, store):
     rec, _ = execute(prepare(_req()), store, log=lambda s: None)
     traj = store.trajectory(rec["run_id"])
     assert rec["trajectory"] == f"{rec['run_id']}.traj.npz"
+    # the record names it relative to the store: the file sits in the store's folder
+    assert os.path.isfile(os.path.join(store.root, rec["trajectory"]))
     task = make_task("pointmass")
     assert traj.shape == (task.episode_length + 1, task.state_size)
     assert not [n for n in os.listdir(store.root) if n.startswith(".tmp-")]
