@@ -110,3 +110,22 @@ def test_a_view_runs_the_plan_only_for_a_method_that_differentiates_the_physics(
     other = TaskView(task, Uses(demo_states=True), "m", plan)
     assert other.plan is None and "pipeline_step" not in vars(other.env.unwrapped)
     assert "pipeline_step" not in vars(task.env.unwrapped)
+
+
+def test_a_copy_of_a_view_keeps_its_training_dynamics():
+    """A copy a method makes of its view (a `tasks.core` transform, which hands `regated` a
+    fresh task) steps the same changed dynamics as the view: a bias the method must cancel
+    stays in the copy's env. Planted fault: `regated` dropping the training dynamics (the
+    copy would train nominal)."""
+    from bench.perturb import parse_dynamics
+    task = make_task("pointmass")
+    bias = parse_dynamics("action_bias:0.3", task)
+    view = TaskView(task, Uses(demo_states=True), "m", dynamics=bias)
+    copy = view.regated(make_task("pointmass"))
+    assert copy.dynamics == bias
+
+    def obs_after(env):
+        s = env.reset(jax.random.PRNGKey(0))
+        return np.asarray(env.step(s, jnp.zeros(task.action_size)).obs)
+    assert np.allclose(obs_after(copy.env), obs_after(view.env))
+    assert not np.allclose(obs_after(copy.env), obs_after(task.env))

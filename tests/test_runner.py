@@ -279,3 +279,27 @@ def test_cpu_model_names_the_first_processor_and_records_carry_it(toy, store):
     assert cpu_model("model name\t: Neoverse\n") == "Neoverse"
     rec, _ = execute(prepare(_req(seed=3)), store, log=lambda s: None)
     assert rec["machine"]["cpu_model"] == cpu_model()
+
+
+def test_env_steps_print_with_the_unit_of_their_size():
+    """Hand values at each boundary (and a value that rounds up only with the right
+    divisor): below 10k exact, then whole thousands, then millions with two decimals."""
+    from bench.budget import format_steps
+    assert [format_steps(n) for n in (0, 950, 9999, 10_000, 10_505, 51_234, 999_499)] == \
+        ["0", "950", "9999", "10k", "11k", "51k", "999k"]
+    assert [format_steps(n) for n in (1_000_000, 20_485_010)] == ["1.00M", "20.49M"]
+
+
+def test_the_store_reads_records_only(store):
+    """Only `<id>.json` files are records: a temp file of an atomic write in progress (a
+    leading '.') and other files are skipped, whatever their order in the folder, and an
+    unreadable record is skipped with a warning that names it."""
+    store.write({"run_id": "b", "status": "ok"})
+    with open(os.path.join(store.root, ".tmp-x.json"), "w") as f:
+        json.dump({"run_id": "tmp"}, f)
+    with open(os.path.join(store.root, "a_notes.txt"), "w") as f:
+        f.write("not a record")
+    with open(os.path.join(store.root, "c.json"), "w") as f:
+        f.write("{\"run_id\": ")
+    with pytest.warns(UserWarning, match="c.json"):
+        assert [r["run_id"] for r in store.records()] == ["b"]
