@@ -129,3 +129,15 @@ def test_a_copy_of_a_view_keeps_its_training_dynamics():
         return np.asarray(env.step(s, jnp.zeros(task.action_size)).obs)
     assert np.allclose(obs_after(copy.env), obs_after(view.env))
     assert not np.allclose(obs_after(copy.env), obs_after(task.env))
+
+
+def test_reward_terms_in_the_metrics_are_hidden_without_true_reward():
+    """Brax tasks carry their reward's terms in `state.metrics` (hopper: reward_forward,
+    reward_ctrl, ...): a method that did not declare true_reward sees none of them, after
+    reset or step. Planted fault: the wrapper hiding `reward` but keeping `metrics`."""
+    task = make_task("hopper")
+    assert task.env.reset(jax.random.PRNGKey(0)).metrics  # there is something to hide
+    blind = TaskView(task, Uses(demo_states=True), "m").env
+    s = blind.reset(jax.random.PRNGKey(0))
+    assert s.metrics == {}
+    assert blind.step(s, jnp.zeros(task.action_size)).metrics == {}
