@@ -163,7 +163,9 @@ def cmd_sweep(args):
         check_tuning_seeds(seeds)
     code = _run_all(args, _requests(args, args.methods, args.tasks, seeds))
     if not args.dry_run:
-        cmd_leaderboard(args)
+        from bench.report import write_report
+        from bench.store import Store
+        _print_report(write_report(Store(args.store), args.out), args.out)
     return code
 
 
@@ -221,22 +223,26 @@ def starved_note(store_dir: str, methods, tasks) -> str:
 def cmd_leaderboard(args):
     from bench.report import write_report
     from bench.store import Store
-    zero_shot = None  # a sweep's report has none: its arguments have no --zero-shot
-    if getattr(args, "zero_shot", None) is not None:
+    zero_shot = None
+    if args.zero_shot is not None:
         if not os.path.isdir(args.zero_shot):
             print(f"error: --zero-shot store {args.zero_shot!r} is not a directory; name a "
                   "store of nominal-trained runs swept with --transfer (e.g. "
                   "results/grid/runs)", file=sys.stderr)
             return EXIT_BAD_INPUT
         zero_shot = Store(args.zero_shot)
-    paths = write_report(Store(args.store), args.out, zero_shot=zero_shot)
+    _print_report(write_report(Store(args.store), args.out, zero_shot=zero_shot), args.out)
+    return 0
+
+
+def _print_report(paths: list[str], out_dir: str) -> None:
+    """The report's tables on stdout (leaderboard.md first), then the files written."""
     print(open(paths[0]).read())  # leaderboard.md
     for name in ("sample_matched.md", "aggregates.md", "adaptation.md"):
-        path = os.path.join(args.out, name)
+        path = os.path.join(out_dir, name)
         if path in paths:
             print(open(path).read())
     print("written: " + ", ".join(paths))
-    return 0
 
 
 def cmd_reindex(args):

@@ -397,12 +397,13 @@ def execute(p: Prepared, store: Store, force: bool = False,
         f"budget {req.budget.describe()}" + (f", training dynamics {p.dynamics.key}"
                                              if p.dynamics else ""))
     try:
-        result = spec.train(TaskView(task, spec.uses, spec.name, p.plan, p.dynamics),
-                            DemoView(p.demo, spec.uses, spec.name, req.num_demos),
-                            p.config, ctx, req.seed)
-        if not isinstance(result, TrainResult):
-            raise TypeError(f"method {spec.name!r} returned {type(result).__name__}, "
+        out = spec.train(TaskView(task, spec.uses, spec.name, p.plan, p.dynamics),
+                         DemoView(p.demo, spec.uses, spec.name, req.num_demos),
+                         p.config, ctx, req.seed)
+        if not isinstance(out, TrainResult):
+            raise TypeError(f"method {spec.name!r} returned {type(out).__name__}, "
                             "expected bench.api.TrainResult")
+        result = out
         if not _finite_tree(result.policy.params):
             raise Diverged("the final policy has non-finite parameters")
         train_s = ctx.elapsed()

@@ -72,15 +72,20 @@ class Store:
 
     def finished(self, run_id: str) -> dict | None:
         """The finished record of `run_id`, or None: the cell is to be run. A corrupt record
-        file is moved to <store>/corrupt/ (kept, not deleted) with a warning naming it, and
-        its cell then counts as not run."""
+        file is moved to <store>/corrupt/ (kept, not deleted: a later one of the same cell
+        becomes <id>.2.json, and so on) with a warning naming it, and its cell then counts as
+        not run."""
         try:
             rec = self.get(run_id)
         except CorruptRecord as e:
             aside = os.path.join(self.root, "corrupt")
             os.makedirs(aside, exist_ok=True)
-            os.replace(self.path(run_id), os.path.join(aside, f"{run_id}.json"))
-            warnings.warn(f"{e}; moved to {aside}, and the cell re-runs")
+            dest, n = os.path.join(aside, f"{run_id}.json"), 1
+            while os.path.exists(dest):  # an earlier corrupt copy of this cell is kept too
+                n += 1
+                dest = os.path.join(aside, f"{run_id}.{n}.json")
+            os.replace(self.path(run_id), dest)
+            warnings.warn(f"{e}; moved to {dest}, and the cell re-runs")
             return None
         return rec if rec is not None and rec.get("status") in FINISHED else None
 

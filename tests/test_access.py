@@ -17,6 +17,7 @@ def _view(uses):
 
 def test_reward_is_hidden_without_true_reward():
     tv, dv = _view(Uses(demo_states=True))
+    assert (tv.state_size, tv.episode_length) == (2, 128)   # public task facts pass through
     s = tv.env.step(tv.env.reset(jax.random.PRNGKey(0)), jnp.zeros(1))
     assert np.isnan(s.reward)
     with pytest.raises(InformationError, match="demo.rewards.*true_reward"):
@@ -34,6 +35,13 @@ def test_undeclared_demo_fields_raise():
     _, dv = _view(Uses())
     with pytest.raises(InformationError, match="demo_states"):
         dv.obs
+    # the length and the initial states are public task information, open to every method
+    assert dv.length == 128 and dv.init_keys.shape == (1, 2)   # num_demos = 1
+    # a field no demo has is an ordinary AttributeError naming it (hasattr and getattr's
+    # default rely on it; planted fault: the error raised without the name)
+    with pytest.raises(AttributeError) as e:
+        dv.no_such_field
+    assert e.value.args == ("no_such_field",) and getattr(dv, "no_such_field", 3) == 3
 
 
 def _grad_through_env(env, actions=None):

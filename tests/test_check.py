@@ -40,13 +40,60 @@ def test_summarize_mean_std_and_failed_runs():
     assert s["b/x"]["mean"] is None and s["b/x"]["scores"] == [0.5, None]
 
 
+def test_summarize_gives_one_seed_and_a_failed_seed_std_zero_and_counts_the_seeds():
+    """Hand values. Planted faults: a std taken over one seed (NaN, ddof=1) or over a run
+    that diverged (NaN); the seed count stored under another key (compare reads `n`)."""
+    s = check.summarize({"one": [0.7], "two": [0.5, None], "three": [0.1, 0.2, 0.6]})
+    assert s["one"] == {"scores": [0.7], "mean": 0.7, "std": 0.0, "n": 1}
+    assert s["two"] == {"scores": [0.5, None], "mean": None, "std": 0.0, "n": 2}
+    assert s["three"]["n"] == 3 and s["three"]["mean"] == pytest.approx(0.3)
+    assert s["three"]["std"] == pytest.approx(0.2645751311)       # sqrt(0.14 / 2)
+
+
+def test_compare_reads_a_reference_without_a_seed_count_as_one_seed():
+    """A reference written without `n` widens its band by the full std (n = 1): 3 * 0.1.
+    Planted fault: the default count dropped (max(None, 1) raises)."""
+    ref = {"a/x": {"mean": 0.9, "std": 0.1, "scores": [0.8, 1.0]}}
+    v = check.compare(ref, {"a/x": _ref(0.65)}, abs_tol=0.05, z=3)[0]
+    assert v.tolerance == pytest.approx(0.3) and v.passed
+
+
+def test_a_failed_canary_names_its_seeds_scores_and_the_table_reads_as_written():
+    """The verdict of a canary with a failed seed lists the seeds' scores; the rendered
+    table, hand-written here, is what CI prints. Planted faults: the scores left out of the
+    reason; a header or PASS/FAIL word changed."""
+    ref = {"a/x": _ref(0.9), "c/x": _ref(0.5)}
+    now = {"a/x": _ref(0.86), "c/x": {"mean": None, "scores": [None, 0.5]}}
+    verdicts = check.compare(ref, now, abs_tol=0.05, z=3)
+    assert verdicts[1].why == "a run failed or diverged: [None, 0.5]"
+    assert check.render(verdicts).splitlines() == [
+        "canary                       reference     now   delta    tol  result",
+        "a/x                              0.900   0.860  -0.040  0.050  PASS: ok",
+        "c/x                              0.500       -       -  0.050  FAIL: a run failed or "
+        "diverged: [None, 0.5]"]
+
+
 def test_gate_passes_unchanged_and_fails_a_planted_regression(tmp_path):
     bc = [c for c in check.default_suite().canaries if c.key == "bc/pointmass"]
     ref = tmp_path / "reference.json"
     ok, report = check.check(str(ref), update=True, suite=bc, log=lambda s: None)
-    assert ok and ref.exists()
+    written = json.loads(ref.read_text())
+    head, body = report.split("\n", 1)
+    assert ok and head == f"reference written: {ref}" and json.loads(body) == written["canaries"]
+    assert body == json.dumps(json.loads(body), indent=1)      # printed one space per level
+    with open(check.REFERENCE) as f:   # the committed reference is what --update writes
+        assert written["about"] == json.load(f)["about"]
     ok, report = check.check(str(ref), suite=bc, log=lambda s: None)
     assert ok and "PASS" in report and "bc/pointmass" in report
+    assert report.endswith("\n\ncanary gate: PASS")
+    # the suite's z widens the band: tol = max(tolerance, z * std / sqrt(n)), hand-computed
+    # from the reference (planted fault: the suite's z not passed on, the default 3 used)
+    r = written["canaries"]["bc/pointmass"]
+    assert r["std"] > 0 and r["n"] == 2
+    ok, report = check.check(str(ref), suite=check.Suite(tuple(bc), z=1000.0),
+                             log=lambda s: None)
+    line = next(l for l in report.splitlines() if l.startswith("bc/pointmass"))
+    assert f"{max(bc[0].tolerance, 1000.0 * r['std'] / 2 ** 0.5):6.3f}  PASS" in line
     # planted regression: BC trained for 1 update instead of 300 (near-random policy)
     ok, report = check.check(str(ref), suite=bc, extra={"bc/pointmass": {"updates": 1}},
                              log=lambda s: None)
@@ -135,6 +182,9 @@ def test_a_suite_file_sets_each_canarys_budget_overrides_seeds_and_tolerance(tmp
     assert not v["bc/pointmass"].passed and v["bc-short"].passed
 
 
+_ONE = "[[canary]]\nmethod = 'bc'\ntask = 'pointmass'\nenv_steps = 1\n"
+
+
 @pytest.mark.parametrize("text, message", [
     ("[[canary]]\nmethod = 'nope'\ntask = 'pointmass'\nenv_steps = 5\n",
      "line 1 ([[canary]] 1): unknown method 'nope'"),
@@ -156,6 +206,13 @@ def test_a_suite_file_sets_each_canarys_budget_overrides_seeds_and_tolerance(tmp
      "line 6 ([[canary]] 2): canary 'bc/pointmass' is already defined at"),
     ("seeds = [0\n", "not valid TOML"),
     ("seeds = [0]\n", "no canaries"),
+    ("canary = 3\n", "no canaries"),
+    ("eval_episodes = 2.5\n" + _ONE, "suite.toml: eval_episodes must be a whole number >= 1, "
+     "got 2.5"),
+    ("tolerance = -1\n" + _ONE, "suite.toml: tolerance must be a number >= 0, got -1"),
+    ("z = -0.5\n" + _ONE, "suite.toml: z must be a number >= 0, got -0.5"),
+    (_ONE + "eval_episodes = 0\n", "suite.toml line 1 ([[canary]] 1): eval_episodes must be a "
+     "whole number >= 1, got 0"),
 ])
 def test_a_malformed_suite_names_the_line_and_the_fix(tmp_path, text, message):
     with pytest.raises(check.SuiteError) as e:

@@ -4,6 +4,7 @@ Every test names, in its docstring, the fault it was written to catch: the fault
 in a copy of the code and the test failed on it.
 """
 import dataclasses
+import os
 import pathlib
 import time
 
@@ -235,6 +236,21 @@ def test_a_fresh_compile_meter_explains_retraces_only_while_a_clock_runs():
             logging.getLogger(name).removeFilter(meter._on_log)
 
 
+def test_a_retrace_names_its_function_and_the_last_two_parts_of_its_file():
+    """Hand-written explanations in JAX's two forms (a function never seen, one seen with
+    other arguments), with and without a place. Planted faults: the no-match case inverted,
+    the name read from the place's group."""
+    from bench.budget import _traced_function
+    assert _traced_function("TRACING CACHE MISS at x.py:1 because:\n  never seen function:\n"
+                            "    update id=140 defined at /a/b/methods/ild/train.py:42\n"
+                            ) == "update (ild/train.py:42)"
+    assert _traced_function("TRACING CACHE MISS because:\n  for epoch defined at "
+                            "/r/methods/shac/loop.py:7\n    tracing context doesn't match"
+                            ) == "epoch (shac/loop.py:7)"
+    assert _traced_function("TRACING CACHE MISS because:\n  for step\n") == "step"
+    assert _traced_function("TRACING CACHE MISS for reasons of its own") == "?"
+
+
 def test_a_retrace_explanation_drops_its_call_site_line_and_is_bounded():
     """Hand-computed: the first line (call site and cost) goes, blank lines go, at most 8
     lines joined by ' / ', at most 600 characters."""
@@ -282,14 +298,40 @@ def test_a_truncated_record_is_named_set_aside_and_its_cell_re_run(temp_method, 
     text = open(store.path(p.run_id)).read()
     with open(store.path(p.run_id), "w") as f:
         f.write(text[: len(text) // 2])
-    with pytest.raises(CorruptRecord, match=f"record .*{p.run_id}.json is not valid JSON"):
+    with pytest.raises(CorruptRecord) as e:
         store.get(p.run_id)
+    assert str(e.value).startswith(f"record {store.path(p.run_id)} is not valid JSON (")
+    assert str(e.value).endswith("it was truncated or edited by hand; delete it (or run the "
+                                 "sweep again, which sets it aside under corrupt/ and re-runs "
+                                 "the cell)")
     with pytest.warns(UserWarning, match="corrupt"):
         out = run_local([p], store, log=lambda s: None, isolate=False, warm=False)
     assert out[0].status == "ok" and not out[0].skipped
     again = store.get(p.run_id)
     assert again["final_return"] == good["final_return"]
     assert open(f"{store.root}/corrupt/{p.run_id}.json").read() == text[: len(text) // 2]
+    # cut short again: this copy joins the first in corrupt/, and neither is lost (planted
+    # fault: creating corrupt/ anew failing once it exists)
+    with open(store.path(p.run_id), "w") as f:
+        f.write(text[:10])
+    with pytest.warns(UserWarning, match=f"moved to .*corrupt/{p.run_id}.2.json"):
+        assert store.finished(p.run_id) is None
+    assert sorted(os.listdir(f"{store.root}/corrupt")) == [f"{p.run_id}.2.json",
+                                                           f"{p.run_id}.json"]
+    assert open(f"{store.root}/corrupt/{p.run_id}.2.json").read() == text[:10]
+
+
+def test_a_record_file_that_holds_no_object_is_named_with_the_fix(store):
+    """Valid JSON that is not an object (a list written by another tool) is no record.
+    Planted fault: the error raised without its message."""
+    from bench.store import CorruptRecord
+    os.makedirs(store.root, exist_ok=True)
+    with open(store.path("abc"), "w") as f:
+        f.write("[1, 2]")
+    with pytest.raises(CorruptRecord) as e:
+        store.get("abc")
+    assert str(e.value) == (f"record {store.path('abc')} holds a list, not a run record; "
+                            "delete it and re-run the cell")
 
 
 def _constant_train(task, demo, config, ctx, seed):
@@ -303,16 +345,27 @@ def test_an_atomic_write_that_fails_keeps_the_old_file_and_leaves_no_temp_file(t
 
     from bench.store import write_atomic, write_json_atomic
     path = str(tmp_path / "r.json")
-    write_json_atomic(path, {"run_id": "r", "v": 1})
+    write_json_atomic(path, {"v": 1, "run_id": "r", "x": float("nan")})
     before = open(path).read()
+    # records are diffable text: keys sorted, one space per level, NaN kept (a diverged
+    # run's score)
+    assert before == '{\n "run_id": "r",\n "v": 1,\n "x": NaN\n}'
+
+    during = []
 
     def fails(f):
         f.write('{"run_id": "r", "v": 2, "pad": "')
+        during.extend(os.listdir(tmp_path))
         raise OSError("disk full")
     with pytest.raises(OSError, match="disk full"):
         write_atomic(path, fails)
     assert open(path).read() == before
     assert os.listdir(tmp_path) == ["r.json"]
+    # the temp file sits beside the target (os.replace is atomic only within one file
+    # system), named so the store skips it: planted faults, the temp file in /tmp or
+    # under another prefix
+    (tmp,) = [n for n in during if n != "r.json"]
+    assert tmp.startswith(".tmp-") and tmp.endswith(".json")
 
 
 # ----------------------------------------------------------------------------- evaluator

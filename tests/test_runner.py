@@ -64,16 +64,31 @@ def test_step_budget_is_enforced_and_curve_recorded(toy, store):
         [1 / 2, 1 / 4, 1 / 6, 1 / 8, 1 / 10, 1 / 10])
     assert rec["final_normalized"] == rec["curve"][-1]["normalized"]
     assert rec["final_from"] == "final policy"
+    assert rec["reports"] == 10           # one per iteration (planted fault: counting two)
 
 
-def test_record_round_trip_and_fields(toy, store):
-    rec, _ = execute(prepare(_req()), store, log=lambda s: None)
+def test_record_round_trip_and_fields(toy, store, monkeypatch, tmp_path):
+    p = prepare(_req())
+    monkeypatch.chdir(tmp_path)  # the demo's path is recorded relative to the repository
+    lines = []
+    rec, _ = execute(p, store, log=lines.append)
+    assert rec["demo"] == {"path": "tasks/data/pointmass.npz", "sha256": p.demo.sha256}
+    first = rec["curve"][0]       # each evaluation's log line, hand-formatted from the curve
+    assert (f"  eval @ {first['train_s']:.1f}s, 200 env steps: return {first['return']:.2f}, "
+            f"normalized {first['normalized']:.3f}") in lines
     with open(store.path(rec["run_id"])) as f:
         assert json.load(f) == json.loads(json.dumps(rec))
     for key in ("method", "task", "seed", "config", "versions", "git_revision", "machine",
                 "budget", "curve", "final_return", "final_normalized", "compile_s", "status",
-                "uses", "train_s", "env_steps", "demo", "references"):
+                "uses", "train_s", "env_steps", "demo", "references", "wall_s", "compiles",
+                "retraced", "reports"):
         assert key in rec, key
+    assert isinstance(rec["wall_s"], float) and rec["wall_s"] == round(rec["wall_s"], 3)
+    assert rec["references"] == {"expert_return": p.demo.expert_return,
+                                 "random_return": p.demo.random_return}
+    assert rec["started"] <= rec["finished"]
+    assert lines[-1] == (f"run {rec['run_id']}: ok, final return {rec['final_return']:.2f}, "
+                         f"normalized {rec['final_normalized']:.3f}, 1000 env steps")
     assert rec["config"] == {"gain": 2.0, "nan_after": -1, "crash": False}
 
 
@@ -164,6 +179,46 @@ def test_reindex_renames_old_scheme_records_and_sets_duplicates_aside(toy, store
         assert json.load(f)["started"] == "2000-01-01"            # the older one
     assert [r["run_id"] for r in store.records()] == [rid]
     assert reindex(store, log=lambda s: None) == []                # idempotent
+    # an old-scheme record older than the one already under today's id moves aside itself
+    # (planted fault: the older one left in place, the store then holding the cell twice)
+    with open(store.path("oldscheme0000003"), "w") as f:
+        json.dump({**rec, "run_id": "oldscheme0000003", "started": "1999-01-01"}, f)
+    lines = []
+    assert reindex(store, log=lines.append) == [("oldscheme0000003", rid)]
+    assert lines[0] == f"reindex: oldscheme0000003 duplicates the newer {rid}; moved to duplicates/"
+    assert [r["run_id"] for r in store.records()] == [rid]
+    assert store.get(rid)["started"] == "2001-01-01"
+    assert sorted(os.listdir(os.path.join(tmp_dir, "duplicates"))) == sorted(
+        dup + ["oldscheme0000003.json"])
+    # a JSON file that is no run record is named in the log and left alone
+    with open(store.path("notes"), "w") as f:
+        json.dump({"about": "my notes"}, f)
+    lines = []
+    assert reindex(store, log=lines.append) == []
+    assert lines[0] == "reindex: ? is not a run record; left as is"
+    assert json.load(open(store.path("notes"))) == {"about": "my notes"}
+
+
+def test_the_record_of_a_cell_whose_worker_died_is_failed_complete_and_re_run(toy, store):
+    """A sweep writes this record when a Ray worker dies mid-cell: the cell's head fields,
+    status 'failed', the demo's references and the provenance of every record; a sweep
+    re-runs it. Planted fault: a provenance field under another name."""
+    from bench.machine import git_revision, machine
+    from bench.runner import failed_record
+    p = prepare(_req())
+    rec = failed_record(p, "the Ray worker died: killed")
+    assert (rec["run_id"], rec["method"], rec["task"], rec["seed"]) == (
+        p.run_id, "toy", "pointmass", 0)
+    assert rec["status"] == "failed" and rec["message"] == "the Ray worker died: killed"
+    assert rec["git_revision"] == git_revision() and rec["machine"] == machine()
+    assert rec["references"] == {"expert_return": p.demo.expert_return,
+                                 "random_return": p.demo.random_return}
+    assert rec["started"] <= rec["finished"]
+    assert lines[-1] == (f"run {rec['run_id']}: ok, final return {rec['final_return']:.2f}, "
+                         f"normalized {rec['final_normalized']:.3f}, 1000 env steps")
+    assert rec["started"] == rec["finished"] and rec["env_steps"] == 0 and rec["curve"] == []
+    store.write(rec)
+    assert store.get(p.run_id)["status"] == "failed" and store.finished(p.run_id) is None
 
 
 def test_divergence_is_recorded_with_the_last_valid_evaluation(toy, store):
@@ -203,10 +258,27 @@ def test_remaining_budget():
     assert RunContext(Budget(seconds=50), ev, 0).remaining(10 ** 9)[1] is None
 
 
-@pytest.mark.parametrize("kw", [dict(seconds=0), dict(env_steps=-5), dict()])
-def test_invalid_budgets(kw):
-    with pytest.raises(BudgetError):
+@pytest.mark.parametrize("kw, message", [
+    (dict(), "a budget needs seconds (e.g. --budget 300s) or env steps (--budget-steps N)"),
+    (dict(seconds=0), "budget seconds must be > 0, got 0"),
+    (dict(env_steps=-5), "budget env steps must be > 0, got -5"),
+    (dict(env_steps=0), "budget env steps must be > 0, got 0"),
+    (dict(env_steps=2.5), "budget env steps must be a whole number, got 2.5"),
+    (dict(seconds=5, evals=0), "budget evals must be >= 1, got 0")])
+def test_invalid_budgets(kw, message):
+    with pytest.raises(BudgetError) as e:
         Budget(**kw)
+    assert str(e.value) == message
+
+
+def test_a_budget_is_one_value_however_it_is_written():
+    """600 and 600.0 seconds, 1e5 and 100000 env steps: one budget, one run id (the run id
+    hashes them as JSON). Planted fault: the whole-number steps stored under another name."""
+    b = Budget(seconds=600, env_steps=1e5)
+    assert type(b.env_steps) is int and type(b.seconds) is float
+    assert b == Budget(seconds=600.0, env_steps=100000)
+    assert b.describe() == "600s / 100000 env steps"
+    assert Budget(env_steps=5).describe() == "5 env steps"
 
 
 def test_parse_seconds():
@@ -267,6 +339,17 @@ def test_final_policy_trajectory_is_stored_beside_the_record(toy, store):
     assert [r["run_id"] for r in store.records()] == [rec["run_id"]]  # not read as a record
 
 
+def test_a_trajectory_is_stored_as_float32_whatever_it_is_given(store):
+    """Renders read float32 states (half the file of float64). Planted fault: the states
+    saved in the dtype they came in."""
+    import numpy as np
+    os.makedirs(store.root, exist_ok=True)
+    states = np.arange(6, dtype=np.float64).reshape(3, 2) / 3
+    store.write_trajectory("abc", states)
+    back = store.trajectory("abc")
+    assert back.dtype == np.float32 and np.array_equal(back, states.astype(np.float32))
+
+
 def test_cpu_model_names_the_first_processor_and_records_carry_it(toy, store):
     """Speed ratios move with the CPU model (update / forward 2.91-2.95x on one, 3.15-3.21x
     on another for the same code), so records and speed CSVs name it;
@@ -303,3 +386,144 @@ def test_the_store_reads_records_only(store):
         f.write("{\"run_id\": ")
     with pytest.warns(UserWarning, match="c.json"):
         assert [r["run_id"] for r in store.records()] == ["b"]
+
+
+def test_a_transfer_run_records_each_default_perturbation_as_evaluated_alone(toy, store,
+                                                                            tmp_path,
+                                                                            monkeypatch):
+    """With --transfer the record holds one entry per perturbation of the task's default
+    set, each what `evaluate_transfer` gives for the final policy and the run's seed, and
+    their summary. Planted faults: the transfer left out, evaluated with another seed, or
+    with the perturbations dropped."""
+    from bench import perturb
+    from bench.transfer import default_summary, evaluate_transfer
+    _references_in(tmp_path, monkeypatch)
+    req = dataclasses.replace(_req(seed=3), eval=dataclasses.replace(FAST_EVAL, transfer=True))
+    p = prepare(req)
+    rec, _ = execute(p, store, log=lambda s: None)
+    assert rec["status"] == "ok", rec["message"]
+    task = make_task("pointmass")
+    todo = perturb.default_set(task)
+    alone = evaluate_transfer(task, p.demo, Policy(_pd, jnp.asarray(2.0)), 3, req.eval, todo,
+                              False)
+    assert sorted(rec["transfer"]) == sorted(alone) and len(alone) == len(todo) > 0
+    scored = [k for k, e in alone.items() if "skipped" not in e]   # pointmass has no friction
+    assert scored
+    for key, entry in alone.items():
+        if key in scored:
+            assert rec["transfer"][key]["normalized"] == pytest.approx(entry["normalized"],
+                                                                       rel=1e-6), key
+        else:
+            assert rec["transfer"][key] == entry
+    assert rec["transfer_normalized"] == pytest.approx(default_summary(alone, task))
+
+
+def test_a_run_in_changed_dynamics_logs_its_nominal_score(toy, store, monkeypatch, tmp_path):
+    """The log line of the nominal score beside the headline one, hand-formatted from the
+    record. Planted faults: the dynamics not passed to the scored task, a field misread or
+    misformatted in the line."""
+    from bench import transfer as tr
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path / "refs"))
+    lines = []
+    rec, _ = execute(prepare(dataclasses.replace(_req(), train_dynamics="action_bias:0.5:fixed")),
+                     store, log=lines.append)
+    assert rec["status"] == "ok", rec["message"]
+    n = rec["nominal"]
+    assert (f"  nominal dynamics: return {n['return']:.2f}, normalized "
+            f"{n['normalized']:.3f}") in lines
+    assert rec["references"] != rec["nominal_references"]   # scored under the changed physics
+    p = prepare(_req())
+    assert rec["nominal_references"] == {"expert_return": p.demo.expert_return,
+                                         "random_return": p.demo.random_return}
+    assert rec["run_id"] != prepare(_req()).run_id             # another cell than the nominal
+
+
+def _not_a_result(task, demo, config, ctx, seed):
+    return {"policy": None}
+
+
+def test_a_method_that_returns_no_train_result_fails_naming_what_it_returned(temp_method,
+                                                                            store):
+    temp_method(MethodSpec(name="dicty", train=_not_a_result, config_cls=ToyConfig,
+                           uses=Uses()))
+    rec, _ = execute(prepare(_req(method="dicty")), store, log=lambda s: None)
+    assert rec["status"] == "failed"
+    assert rec["message"].startswith("TypeError: method 'dicty' returned dict, expected "
+                                     "bench.api.TrainResult\n")
+
+
+def test_a_method_with_simulator_gradients_records_its_physics_plan(temp_method, store):
+    """The record names the physics plan the method's views ran (planted fault: the plan
+    under another key)."""
+    temp_method(MethodSpec(name="toy_grad", train=toy_train, config_cls=ToyConfig,
+                           uses=Uses(sim_gradients=True)))
+    p = prepare(_req(method="toy_grad"))
+    rec, _ = execute(p, store, log=lambda s: None)
+    assert rec["physics"] == {"choice": "task", "platform": p.platform,
+                              "plan": dataclasses.asdict(p.plan)}
+
+
+def test_a_config_field_at_its_default_factory_value_leaves_the_identity():
+    """A list-valued knob (a default_factory field) at its default is left out of the run
+    identity like any other default. Planted fault: the factory's value not computed."""
+    from bench.runner import config_identity
+
+    @dataclasses.dataclass(frozen=True)
+    class WithList:
+        xs: list = dataclasses.field(default_factory=lambda: [1, 2])
+        lr: float = 0.1
+
+    assert config_identity(WithList, {"xs": (1, 2), "lr": 0.1}) == {}
+    assert config_identity(WithList, {"xs": [3], "lr": 0.1}) == {"xs": [3]}
+
+
+def _state_policy_train(task, demo, config, ctx, seed):
+    pol = Policy(lambda p, s, k, d: jnp.clip(-2.0 * s.obs[..., :1] - s.obs[..., 1:], -1, 1), (),
+                 kind="jax_state")
+    return TrainResult(pol, env_steps=0)
+
+
+def _references_in(tmp_path, monkeypatch):
+    """The transfer references read from a copy of the committed ones: what a test computes
+    lands in tmp_path, never in the package data."""
+    import shutil
+
+    from bench import transfer as tr
+    shutil.copytree(tr.REF_DIR, tmp_path / "refs")
+    monkeypatch.setattr(tr, "REF_DIR", str(tmp_path / "refs"))
+
+
+def test_a_robustness_run_scores_a_simulator_policy_on_the_whole_grid(temp_method, store,
+                                                                      tmp_path, monkeypatch):
+    """--robustness evaluates every perturbation of the task's grid, and a method that
+    declared sim_at_test keeps that right under the perturbations too. Planted faults: the
+    default set used instead of the grid; the declaration not passed to the transfer
+    evaluation (its simulator policy then refused)."""
+    from bench import perturb
+    _references_in(tmp_path, monkeypatch)
+    temp_method(MethodSpec(name="planner", train=_state_policy_train, config_cls=ToyConfig,
+                           uses=Uses(sim_at_test=True)))
+    req = dataclasses.replace(_req(method="planner"),
+                              eval=EvalConfig(num_episodes=2, robustness=True))
+    rec, _ = execute(prepare(req), store, log=lambda s: None)
+    assert rec["status"] == "ok", rec["message"]
+    grid = perturb.grid_set(make_task("pointmass"))
+    assert sorted(rec["transfer"]) == sorted(p.key for p in grid) and len(grid) == 28
+
+
+def _nan_at_the_end(task, demo, config, ctx, seed):
+    ctx.report(Policy(_pd, jnp.asarray(2.0)), 100, force_eval=True)
+    return TrainResult(Policy(_pd, jnp.asarray(jnp.nan)), env_steps=300)
+
+
+def test_a_final_policy_that_diverged_keeps_the_env_steps_the_method_simulated(temp_method,
+                                                                              store):
+    """The record's env steps are what the method simulated (300), not those of its last
+    valid evaluation (100), which the score falls back to. Planted fault: the env steps
+    read from the fallback point."""
+    temp_method(MethodSpec(name="late_nan", train=_nan_at_the_end, config_cls=ToyConfig,
+                           uses=Uses()))
+    rec, _ = execute(prepare(_req(method="late_nan")), store, log=lambda s: None)
+    assert rec["status"] == "diverged" and "non-finite parameters" in rec["message"]
+    assert rec["final_from"] == "last valid evaluation" and rec["curve"][-1]["env_steps"] == 100
+    assert rec["env_steps"] == 300

@@ -42,9 +42,19 @@ def test_stratified_bootstrap_resamples_within_tasks():
     # the python path (any statistic) agrees with the vectorized mean path
     slow = stats.stratified_bootstrap(a, lambda m: float(np.mean(m)), reps=500, seed=0)
     np.testing.assert_allclose(slow, reps)
+    # seed 0 unless told (planted fault: another default seed)
+    np.testing.assert_array_equal(stats.stratified_bootstrap(a, stats.mean, reps=500), reps)
     # one run: nothing to resample, zero-width interval
     assert stats.percentile_ci(stats.stratified_bootstrap([[0.3, 0.7]], stats.iqm, 100)) == (
         pytest.approx(0.5), pytest.approx(0.5))
+
+
+def test_a_bootstrap_interval_is_seeded_and_sized_by_default_as_the_tables_were_made():
+    """The leaderboard's intervals use the defaults (2000 replicates, seed 0): the committed
+    tables reproduce only with those. Planted fault: another default count."""
+    v = np.random.default_rng(3).uniform(size=10)
+    assert stats.bootstrap_ci(v) == stats.bootstrap_ci(v, reps=2000, seed=0)
+    assert stats.bootstrap_ci(v) != stats.bootstrap_ci(v, reps=2001, seed=0)
 
 
 def test_bootstrap_ci_of_a_mean():
@@ -67,8 +77,15 @@ def test_score_matrices_refuse_unequal_seeds_and_duplicates():
     assert mats["ild"].shape == (2, 1) and mats["bc"]["a"].tolist() == [0.5, 0.4]
     with pytest.raises(stats.ShapeError, match="appears twice"):
         stats.score_matrices(_frame(rows + [("bc", "a", 0, 0.6)]))
-    with pytest.raises(stats.ShapeError, match="NaN"):
+    with pytest.raises(stats.ShapeError) as e:
         stats.iqm([[0.1, np.nan]])
+    assert str(e.value).startswith("scores: holds NaN/inf")   # named by the default name
+    with pytest.raises(stats.ShapeError) as e:   # the whole message (planted fault: none)
+        stats.score_matrices(_frame([("ild", "a", 0, 1.0), ("bc", "b", 0, 0.5)]))
+    assert str(e.value) == "the methods share no task: nothing to aggregate"
+    with pytest.raises(stats.ShapeError) as e:   # a task asked for that one method lacks
+        stats.score_matrices(_frame(rows[:4] + rows[4:6]), tasks=["a", "b"])
+    assert str(e.value) == "bc has no runs on b"
 
 
 def test_aggregate_and_improvement_tables():
@@ -86,6 +103,17 @@ def test_aggregate_and_improvement_tables():
     assert imp.p.iloc[0] == 1.0 and imp.lo.iloc[0] == 1.0     # every pair, every replicate
     with pytest.raises(stats.ShapeError, match="no scores for 'dac'"):
         stats.improvement_table(mats, "dac")
+    # the bootstrap is seeded: seed 0 by default (the committed tables reproduce), and the
+    # seed given is the one used (planted faults: another default, the seed not passed on)
+    vals = np.random.default_rng(7).uniform(size=(2, 8, 3))
+    rows = [(m, t, s, vals[i, s, j]) for i, m in enumerate(("ild", "bc"))
+            for s in range(8) for j, t in enumerate("abc")]
+    mats = stats.score_matrices(_frame(rows))
+    agg = stats.aggregate_table(mats, reps=300)
+    pd.testing.assert_frame_equal(stats.aggregate_table(mats, reps=300, seed=0), agg)
+    bounds = ["iqm_lo", "iqm_hi", "mean_lo", "mean_hi"]
+    other = stats.aggregate_table(mats, reps=300, seed=1)
+    assert not np.allclose(other[bounds].to_numpy(), agg[bounds].to_numpy())
 
 
 def test_curve_metrics_hand_values():
