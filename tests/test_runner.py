@@ -213,9 +213,6 @@ def test_the_record_of_a_cell_whose_worker_died_is_failed_complete_and_re_run(to
     assert rec["git_revision"] == git_revision() and rec["machine"] == machine()
     assert rec["references"] == {"expert_return": p.demo.expert_return,
                                  "random_return": p.demo.random_return}
-    assert rec["started"] <= rec["finished"]
-    assert lines[-1] == (f"run {rec['run_id']}: ok, final return {rec['final_return']:.2f}, "
-                         f"normalized {rec['final_normalized']:.3f}, 1000 env steps")
     assert rec["started"] == rec["finished"] and rec["env_steps"] == 0 and rec["curve"] == []
     store.write(rec)
     assert store.get(p.run_id)["status"] == "failed" and store.finished(p.run_id) is None

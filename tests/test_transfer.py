@@ -100,8 +100,12 @@ def test_traced_magnitudes_at_zero_reproduce_the_nominal_episodes(pm):
 
 
 def test_one_compilation_serves_every_perturbation(pm):
+    from bench.api import Policy
     from bench.evaluator import _jax_episodes
-    task, demo, pol = pm
+    task, demo, expert = pm
+    # a policy of its own: the expert's compiled episodes are shared with every test of the
+    # process that scores it (transfer references at other episode counts)
+    pol = Policy(lambda params, obs, key, det: expert.act(params, obs, key, det), expert.params)
     ps = [Perturbation("mass", 0.7), Perturbation("actuator", -0.4),
           Perturbation("action_noise", 0.2), Perturbation("init_noise", 0.1)]
     rets = [Evaluator(perturbed_task(task, p), CFG).evaluate(pol, 2).mean_return for p in ps]
