@@ -10,7 +10,7 @@
     ildbench reindex --store S          rename records to the current run-id scheme
     ildbench new-method NAME [--dir D]  a minimal method plugin package to start from
     ildbench render --task T --method M HTML: expert demo next to the method's final policy
-    ildbench tradeoff backends|budget|ild|substeps --task T   speed-accuracy tables, plots
+    ildbench tradeoff backends|budget|ild|utd|substeps --task T   speed-accuracy tables, plots
     ildbench ablate --task T --budget 3m            the paper's ILD ablations vs Table 3
     ildbench plot-robustness --task T   robustness curves from runs made with --robustness
     ildbench plot-cloth --store S       the cloth's gripper paths and final cloth per run
@@ -318,7 +318,7 @@ def cmd_tradeoff(args):
         paths = tr._save(df, args.task, "backends", out) + [tr.plot_backends(df, args.task, out)]
     elif args.part == "substeps":
         if args.task != "cloth":
-            raise SystemExit("tradeoff substeps measures the cloth simulator: use --task cloth")
+            raise ValueError("tradeoff substeps measures the cloth simulator: use --task cloth")
         df = tr.cloth_substeps()
         paths = tr._save(df, args.task, "substeps", out)
     elif args.part == "budget":
@@ -326,10 +326,25 @@ def cmd_tradeoff(args):
                              tuple(args.minutes) if args.minutes else tr.BUDGET_MINUTES,
                              tuple(Store(d) for d in args.with_store or ()))
         paths = tr._save(df, args.task, "budget", out) + [tr.plot_budget(df, args.task, out)]
+    elif args.part == "utd":
+        from bench.budget import parse_seconds
+        seconds = parse_seconds(args.budget or "3m")
+        ratios = tuple(args.ratios or tr.UTD_RATIOS)
+        for u in ratios:
+            if not u > 0:
+                raise ValueError(f"tradeoff utd: every update-to-data ratio must be > 0, "
+                                 f"got {u:g} in --ratios")
+        if not args.table_only:
+            _run_all(args, tr.utd_requests(args.task, seconds, ratios,
+                                           seeds=range(args.seeds or 3)))
+        df = tr.utd_table(Store(args.store), args.task, seconds)
+        paths = (tr._save(df, args.task, "utd", out)
+                 + [tr.plot_utd(df, args.task, seconds, out)])
     else:
         from bench.budget import parse_seconds
-        _run_all(args, tr.ild_requests(args.task, parse_seconds(args.budget or "3m"),
-                                       seeds=range(args.seeds)))
+        if not args.table_only:
+            _run_all(args, tr.ild_requests(args.task, parse_seconds(args.budget or "3m"),
+                                           seeds=range(args.seeds or 1)))
         df = tr.ild_table(Store(args.store), args.task)
         paths = tr._save(df, args.task, "ild", out) + [tr.plot_ild(df, args.task, out)]
     print(open(paths[1]).read())
@@ -560,12 +575,19 @@ def build_parser():
     p.add_argument("--seed", type=int, default=None, help="default: the best-scoring seed")
     p.add_argument("--out", default=None, help="default: results, or beside the store for cloth")
     p.set_defaults(fn=cmd_render)
-    p = sub.add_parser("tradeoff", help="speed-accuracy trade-offs: backends, budget, ILD")
-    p.add_argument("part", choices=["backends", "budget", "ild", "substeps"])
+    p = sub.add_parser("tradeoff", help="speed-accuracy trade-offs: backends, budget, ILD, "
+                                              "update-to-data ratio")
+    p.add_argument("part", choices=["backends", "budget", "ild", "utd", "substeps"])
     p.add_argument("--task", required=True)
     p.add_argument("--batch", type=int, default=16, help="backends: parallel rollouts")
-    p.add_argument("--budget", default=None, help="ild: training budget per cell (default 3m)")
-    p.add_argument("--seeds", type=int, default=1, help="ild: seeds per cell")
+    p.add_argument("--budget", default=None,
+                   help="ild, utd: training budget per cell (default 3m)")
+    p.add_argument("--seeds", type=int, default=None,
+                   help="ild, utd: seeds per cell (default 1 for ild, 3 for utd)")
+    p.add_argument("--ratios", type=float, nargs="+", default=None,
+                   help="utd: the update-to-data ratios (default 1 0.5 0.25)")
+    p.add_argument("--table-only", action="store_true",
+                   help="ild, utd: tabulate the store's finished runs, run nothing")
     p.add_argument("--minutes", type=float, nargs="+", default=None,
                    help="budget: the budgets to read off the anytime curves (default 1 2 5 10)")
     p.add_argument("--with-store", action="append", metavar="DIR",

@@ -9,6 +9,9 @@
                                                 whose budget covers it
     ildbench tradeoff ild --task T --budget 3m  ILD's truncation length x batch size grid:
                                                 final score, updates done, env-steps/s
+    ildbench tradeoff utd --task T --budget 3m  DAC's and PWIL's update-to-data ratio (1, 0.5,
+                                                0.25): final score, env steps and updates
+                                                each run made, beside the ratio-1 row
     ildbench tradeoff substeps --task cloth     the cloth's substeps per action (dt =
                                                 0.1 s / substeps): stable or not, trajectory
                                                 error of the expert's replay against 200
@@ -263,6 +266,90 @@ def ild_table(store: Store, task: str, version: str | None = None) -> pd.DataFra
                      "budget_s": r["budget"]["seconds"]})
     df = pd.DataFrame(rows)
     return df.sort_values(["truncation", "batch", "seed"], ignore_index=True) if rows else df
+
+
+UTD_RATIOS = (1.0, 0.5, 0.25)
+UTD_METHODS = ("dac", "pwil")
+
+
+def utd_requests(task: str, seconds: float, ratios=UTD_RATIOS, methods=UTD_METHODS,
+                 seeds=range(3), preset: str | None = "cpu"):
+    """One run per method, ratio and seed at the same wall-clock budget. Ratio 1 is each
+    method's default (the original's schedule), so its cells share run ids with a plain
+    sweep of the same budget and preset."""
+    from bench.budget import Budget
+    from bench.runner import RunRequest
+    return [RunRequest(method=m, task=task, seed=s, budget=Budget(seconds=seconds),
+                       preset=preset, overrides={"updates_per_step": float(u)})
+            for m in methods for u in ratios for s in seeds]
+
+
+def utd_runs(store: Store, task: str, seconds: float, methods=UTD_METHODS) -> pd.DataFrame:
+    """One row per (method, ratio, seed): the finished runs of each method's registered
+    version on `task` at the wall-clock budget `seconds`. A seed counts once: the latest
+    finished record stands for it (`ablation.latest_per`)."""
+    from bench.ablation import latest_per
+    from bench.plugins import get_method
+    versions = {m: str(get_method(m).version) for m in methods}
+    runs = [r for r in store.records()
+            if r["task"] == task and r["method"] in versions
+            and str(r.get("method_version")) == versions[r["method"]]
+            and r.get("status") in ("ok", "diverged")
+            and abs(((r.get("budget") or {}).get("seconds") or -1) - seconds) < 1e-6
+            and "updates_per_step" in (r.get("config") or {})]
+    latest = latest_per(runs, lambda r: (r["method"], float(r["config"]["updates_per_step"]),
+                                         r["seed"]))
+    rows = []
+    for (method, utd, seed), r in sorted(latest.items()):
+        train_s = max(float(r.get("train_s") or 0.0), 1e-9)
+        updates = (r.get("train_metrics") or {}).get("train/updates")
+        rows.append({"method": method, "utd": utd, "seed": seed, "status": r["status"],
+                     "normalized": r.get("final_normalized"), "env_steps": r["env_steps"],
+                     "updates": updates, "env_steps_per_s": r["env_steps"] / train_s,
+                     "updates_per_s": None if updates is None else updates / train_s})
+    return pd.DataFrame(rows, columns=["method", "utd", "seed", "status", "normalized",
+                                       "env_steps", "updates", "env_steps_per_s",
+                                       "updates_per_s"])
+
+
+def utd_table(store: Store, task: str, seconds: float, methods=UTD_METHODS) -> pd.DataFrame:
+    """Per method and update-to-data ratio at one wall-clock budget: seeds, mean and std of
+    the final normalized score, and the medians of env steps, updates and their rates.
+    `score_vs_utd1` and `env_steps_vs_utd1` compare each row with the same method's ratio-1
+    row of the same store (absent: NaN), so both sides ran on the same machine."""
+    runs = utd_runs(store, task, seconds, methods)
+    if runs.empty:
+        raise ValueError(f"no finished DAC or PWIL runs on {task!r} at {seconds:g} s in "
+                         f"{store.root}: run `ildbench tradeoff utd --task {task} --budget "
+                         f"{seconds:g}s` first")
+    df = (runs.groupby(["method", "utd"])
+          .agg(seeds=("seed", "count"), mean=("normalized", "mean"),
+               std=("normalized", "std"), env_steps=("env_steps", "median"),
+               updates=("updates", "median"), env_steps_per_s=("env_steps_per_s", "median"),
+               updates_per_s=("updates_per_s", "median"))
+          .reset_index().sort_values(["method", "utd"], ascending=[True, False],
+                                     ignore_index=True))
+    base = df[df.utd == 1.0].set_index("method")
+    df["score_vs_utd1"] = [m - base["mean"].get(meth, np.nan)
+                           for meth, m in zip(df.method, df["mean"])]
+    df["env_steps_vs_utd1"] = [e / base["env_steps"].get(meth, np.nan)
+                               for meth, e in zip(df.method, df.env_steps)]
+    return df
+
+
+def plot_utd(df: pd.DataFrame, task: str, seconds: float, out: str) -> str:
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for method, g in df.groupby("method"):
+        ax.errorbar(g.env_steps, g["mean"], yerr=g["std"].fillna(0), marker="o",
+                    label=method, capsize=3)
+        for _, r in g.iterrows():
+            ax.annotate(f"utd {r.utd:g}", (r.env_steps, r["mean"]), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel(f"env steps in {seconds:g} s (median over seeds)")
+    ax.set_ylabel("final normalized score")
+    ax.set_title(f"{task}: update-to-data ratio at equal wall-clock")
+    ax.legend(fontsize=7)
+    return save_figure(fig, out, f"{task}_utd.png")
 
 
 def _save(df: pd.DataFrame, task: str, part: str, out: str) -> list[str]:

@@ -157,3 +157,81 @@ def test_append_csv_keeps_earlier_rows_when_columns_are_added(tmp_path):
     df = pd.read_csv(path)
     assert list(df.columns) == ["what", "seconds", "ratio"]
     assert df.seconds.tolist() == [0.5, 0.6] and pd.isna(df.ratio[0]) and df.ratio[1] == 7.0
+
+
+def _sb3(store, rid, method, utd, seed, norm, env_steps, updates, secs=180.0, train_s=180.0,
+         version=None, finished="2026-12-01T00:00:00"):
+    from bench.plugins import get_method
+    store.write({"run_id": rid, "task": "hopper", "method": method, "seed": seed,
+                 "finished": finished,
+                 "method_version": version or get_method(method).version,
+                 "status": "ok", "final_normalized": norm, "final_return": 100 * norm,
+                 "config": {"updates_per_step": utd}, "budget": {"seconds": secs},
+                 "curve": [], "train_metrics": {"train/updates": updates},
+                 "env_steps": env_steps, "train_s": train_s})
+
+
+def test_utd_table_sets_each_ratio_beside_its_methods_ratio_one_row(store):
+    _sb3(store, "d1a", "dac", 1.0, 0, 0.5, 18_000, 17_000)
+    _sb3(store, "d1b", "dac", 1.0, 1, 0.7, 22_000, 21_000)
+    _sb3(store, "d4a", "dac", 0.25, 0, 0.2, 70_000, 17_000)
+    _sb3(store, "d4b", "dac", 0.25, 1, 0.4, 90_000, 22_000)
+    _sb3(store, "p4", "pwil", 0.25, 0, 0.9, 60_000, 15_000, train_s=150.0)
+    _sb3(store, "old", "dac", 1.0, 2, -1.0, 1, 1, version="0")      # an older DAC: left out
+    _sb3(store, "10m", "dac", 1.0, 2, -1.0, 1, 1, secs=600.0)       # another budget: left out
+    # seed 0 at ratio 0.25 re-run later: the latest record stands for it, counted once
+    _sb3(store, "d4a2", "dac", 0.25, 0, 0.3, 80_000, 20_000, finished="2026-12-02T00:00:00")
+    df = tradeoff.utd_table(store, "hopper", 180.0)
+    assert list(zip(df.method, df.utd)) == [("dac", 1.0), ("dac", 0.25), ("pwil", 0.25)]
+    d1, d4, p4 = (df.iloc[i] for i in range(3))
+    assert d1.seeds == 2 and d1["mean"] == pytest.approx(0.6) and d1.env_steps == 20_000
+    assert d1["std"] == pytest.approx(np.std([0.5, 0.7], ddof=1))
+    assert d4.seeds == 2 and d4["mean"] == pytest.approx(0.35) and d4.env_steps == 85_000
+    assert d4.updates == 21_000 and d4.env_steps_per_s == pytest.approx(85_000 / 180)
+    assert d4.score_vs_utd1 == pytest.approx(0.35 - 0.6)
+    assert d4.env_steps_vs_utd1 == pytest.approx(85_000 / 20_000)
+    assert d1.score_vs_utd1 == 0.0 and d1.env_steps_vs_utd1 == 1.0
+    # PWIL has no ratio-1 row in this store: nothing to compare with, so no number
+    assert np.isnan(p4.score_vs_utd1) and np.isnan(p4.env_steps_vs_utd1)
+    assert p4.updates_per_s == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="ildbench tradeoff utd --task hopper --budget 60s"):
+        tradeoff.utd_table(store, "hopper", 60.0)
+
+
+def test_utd_requests_at_ratio_one_are_the_plain_sweeps_cells():
+    """Ratio 1 is the methods' default: its cells are the plain sweep's, run id and all; the
+    other ratios are other cells."""
+    from bench.budget import Budget
+    from bench.runner import RunRequest, prepare
+    reqs = tradeoff.utd_requests("hopper", 180.0, ratios=(1.0, 0.25), seeds=(0,))
+    assert [(r.method, r.overrides["updates_per_step"]) for r in reqs] == [
+        ("dac", 1.0), ("dac", 0.25), ("pwil", 1.0), ("pwil", 0.25)]
+    plain = prepare(RunRequest(method="dac", task="hopper", seed=0,
+                               budget=Budget(seconds=180.0), preset="cpu")).run_id
+    ids = [prepare(r).run_id for r in reqs]
+    assert ids[0] == plain and ids[1] != plain and len(set(ids)) == 4
+
+
+def test_tradeoff_utd_refuses_a_ratio_that_is_not_positive(capsys):
+    from bench.cli import EXIT_BAD_INPUT, main
+    assert main(["tradeoff", "utd", "--task", "hopper", "--ratios", "1", "0"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err == (
+        "error: tradeoff utd: every update-to-data ratio must be > 0, got 0 in --ratios\n")
+
+
+def test_tradeoff_utd_table_only_writes_the_table_of_the_stores_runs(store, tmp_path, capsys):
+    import pandas as pd
+    from bench.cli import EXIT_BAD_INPUT, main
+    out = str(tmp_path / "out")
+    args = ["tradeoff", "utd", "--task", "hopper", "--budget", "3m", "--table-only",
+            "--store", store.root, "--out", out]
+    assert main(args) == EXIT_BAD_INPUT  # nothing to tabulate: the error names the command
+    assert "run `ildbench tradeoff utd --task hopper --budget 180s` first" in \
+        capsys.readouterr().err
+    _sb3(store, "d1", "dac", 1.0, 0, 0.5, 18_000, 17_000)
+    _sb3(store, "d4", "dac", 0.25, 0, 0.3, 72_000, 18_000)
+    assert main(args) == 0
+    df = pd.read_csv(f"{out}/hopper_utd.csv")
+    assert df.utd.tolist() == [1.0, 0.25] and df.env_steps_vs_utd1.tolist() == [1.0, 4.0]
+    assert (tmp_path / "out" / "hopper_utd.png").exists()
+    assert "| dac" in capsys.readouterr().out
