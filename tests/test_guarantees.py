@@ -39,7 +39,8 @@ def test_truncation_zeroes_the_cotangent_of_every_state_leaf_at_a_window_boundar
     from tasks.core import task_with_backend
     # A brax task runs on the spring pipeline: the cut is the same on every backend, and
     # spring's step is the cheapest of them to differentiate and compile.
-    task = make_task(task_name) if task_name == "pointmass" else task_with_backend(task_name, "spring")
+    task = (make_task(task_name) if task_name == "pointmass"
+            else task_with_backend(task_name, "spring"))
     cfg = ILDConfig(truncation=4, grad_normalization=False)
     step = make_physics_step(task, cfg)
     s = jax.vmap(task.env.reset)(jax.random.split(jax.random.PRNGKey(0), 2))
