@@ -13,8 +13,10 @@ runs. Each task carries its floors (bench/floors.py: all-zero actions, and the d
 actions replayed open loop) as rows of their own; a cell that does not beat `zero_action`
 is marked, as is a cell whose median env steps are below its method's `min_env_steps`
 (starved: its paper trains for far longer), as is a cell made by an older version of its
-method than the registered one (stale: a sweep of the store would re-run it), and a task whose `zero_action` floor scores
-above 0.8 is named weakly discriminative under the table.
+method than the registered one (stale: a sweep of the store would re-run it; once the
+registered version's re-run has as many seeds, the stale row is left out and named under
+the table), and a task whose `zero_action` floor scores above 0.8 is named weakly
+discriminative under the table.
 """
 from __future__ import annotations
 
@@ -225,6 +227,7 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
                 if row["dynamics"] == NOMINAL else None)
         row["below_zero_action"] = bool(zero is not None and pd.notna(row["normalized_mean"])
                                         and row["normalized_mean"] <= zero["normalized"])
+    out, superseded = _drop_superseded(out)
     for task, entry in floors.items():
         if task not in set(df.task):
             continue
@@ -244,7 +247,29 @@ def board(df: pd.DataFrame, floors: dict[str, dict] | None = None,
     table = pd.DataFrame(out, columns=COLUMNS).sort_values(["task", "normalized_mean"],
                                                            ascending=[True, False])
     table.attrs["tuning_runs_left_out"] = int(tuning_runs_left_out)
+    table.attrs["superseded"] = superseded
     return table
+
+
+def _drop_superseded(rows: list[dict]) -> tuple[list[dict], list[str]]:
+    """(rows, what was left out): a stale row (an older version of its method) goes when the
+    registered version has a row of the same task, method, budget and dynamics with at least
+    as many seeds: the cell has been re-run, and the aggregates read the re-run
+    (`main_variants`). While the re-run has fewer seeds, both rows stay, the old one
+    marked stale. Their records stay in the store."""
+    def cell(r):
+        return r["task"], r["method"], r["budget"], r["dynamics"]
+    current = {}
+    for r in rows:
+        if not r["stale"]:
+            current[cell(r)] = max(current.get(cell(r), 0), r["seeds"])
+    keep, gone = [], []
+    for r in rows:
+        if r["stale"] and current.get(cell(r), -1) >= r["seeds"]:
+            gone.append(f"{r['method']} version {r['version']} on {r['task']}")
+        else:
+            keep.append(r)
+    return keep, sorted(gone)
 
 
 def _count(v) -> str:
@@ -306,6 +331,9 @@ def _below_random(row) -> str:
     collecting; one that lasts as long collects less reward per step."""
     cell = f"{row.method} on {row.task}"
     if pd.isna(row.length_mean):
+        if row.stale:
+            return (f"{cell} at version {row.version} (stale: its records hold no episode "
+                    "lengths; the registered version's re-run is not complete)")
         return f"{cell} (its records hold no episode lengths)"
     if pd.isna(row.random_length):
         return f"{cell}: {row.length_mean:.0f} steps"
@@ -354,6 +382,11 @@ def notes(board: pd.DataFrame) -> str:
         lines.append("Below the random policy (normalized < 0), with the mean steps its "
                      "episodes last before termination against the random policy's: "
                      + "; ".join(_below_random(r) for r in below.itertuples()) + ".")
+    superseded = board.attrs.get("superseded", [])
+    if superseded:
+        lines.append(f"Left out, superseded by a re-run of the registered version with as many "
+                     f"seeds or more (their records stay in the store): "
+                     f"{'; '.join(superseded)}.")
     left_out = board.attrs.get("tuning_runs_left_out", 0)
     if left_out:
         from bench.seeds import TUNING_SEED_START

@@ -266,15 +266,46 @@ def test_curves_read_against_env_steps_and_plot_on_a_step_axis(store, tmp_path):
 
 def test_a_cell_made_by_an_older_method_version_is_marked_stale(store):
     """The registered DAC is version 2: a version-1 cell carries §, a note names both
-    versions, and a version-2 cell is not marked."""
+    versions, and a version-2 cell (its re-run, one seed of two so far) is not marked."""
     for seed in range(2):
         _full(store, f"old{seed}", "dac", "hopper", seed, 0.5, [_pt(5, 0.5)])
+    store.write({**store.get("old0"), "run_id": "new0", "method_version": "2",
+                 "final_normalized": 0.8})
+    board = lb.board(lb.records_frame(store))
+    assert dict(zip(board.version, board.stale)) == {"1": True, "2": False}
+    assert dict(zip(board.version, board.seeds)) == {"1": 2, "2": 1}
+    md = lb.to_markdown(board)
+    assert md.count("dac§") == 1 and "dac version 1 (now 2)" in md
+    assert "superseded" not in md
+
+
+def test_a_stale_cell_below_random_says_its_re_run_is_not_complete(store):
+    for seed in range(2):
+        _full(store, f"old{seed}", "dac", "hopper", seed, -0.5, [_pt(5, -0.5)])
+    store.write({**store.get("old0"), "run_id": "new0", "method_version": "2",
+                 "final_normalized": 0.8})
+    md = lb.to_markdown(lb.board(lb.records_frame(store)))
+    assert ("dac on hopper at version 1 (stale: its records hold no episode lengths; the "
+            "registered version's re-run is not complete)") in md
+
+
+def test_a_stale_cell_is_left_out_once_its_re_run_has_as_many_seeds(store):
+    """Version 2's re-run of DAC on hopper has both seeds: the version-1 row goes from the
+    table (named in the notes, its records kept), and the aggregates read version 2. Planted
+    fault it catches: a superseded version-1 cell below random left in the table with no
+    explanation (its records hold no episode lengths)."""
+    for seed in range(2):
+        _full(store, f"old{seed}", "dac", "hopper", seed, -0.5, [_pt(5, -0.5)])
         store.write({**store.get(f"old{seed}"), "run_id": f"new{seed}", "method_version": "2",
                      "final_normalized": 0.8})
     board = lb.board(lb.records_frame(store))
-    assert dict(zip(board.version, board.stale)) == {"1": True, "2": False}
+    cells = board[~board.floor.fillna(False).astype(bool)]
+    assert list(cells.version) == ["2"] and cells.normalized_mean.iloc[0] == pytest.approx(0.8)
     md = lb.to_markdown(board)
-    assert md.count("dac§") == 1 and "dac version 1 (now 2)" in md
+    assert "dac§" not in md and "Below the random policy" not in md
+    assert "superseded by a re-run of the registered version" in md
+    assert "dac version 1 on hopper" in md
+    assert len(list(store.records())) == 4
 
 
 def _seeded(store, rid, seed, norm):
