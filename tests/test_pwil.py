@@ -231,3 +231,27 @@ def test_pwil_horizon_is_the_tasks_episode_length():
     task = types.SimpleNamespace(name="cloth", episode_length=80)
     with pytest.raises(ValueError, match="horizon T=128 .* episode length 80.*--set horizon=80"):
         train(task, None, PWILConfig(horizon=128), None, 0)
+
+
+def test_probe_masks_steps_after_termination_as_the_evaluator_does():
+    from benchmarks.pwil_probe import alive_mask
+    dones = np.array([[0, 0, 1, 0, 1], [0, 0, 0, 0, 0], [1, 0, 0, 0, 0]])
+    np.testing.assert_array_equal(alive_mask(dones), [[1, 1, 1, 0, 0], [1, 1, 1, 1, 1],
+                                                      [1, 0, 0, 0, 0]])
+
+
+def test_probe_ranks_the_pointmass_ladder_by_pwil_return_as_by_task_score():
+    """On pointmass the expert scores ~1 by the demo's references, and PWIL's return falls
+    down the ladder (expert, expert with noise, zero action) with the task score. Planted
+    fault it catches: rewards after termination or a second coupling per episode would
+    change the returns; a wrong normalization the expert's score."""
+    from benchmarks.pwil_probe import probe
+    rows, rho = probe("pointmass", episodes=4, noise=(0.0, 1.0))
+    by = {r["policy"]: r for r in rows}
+    assert [r["policy"] for r in rows] == ["expert, noise 0", "expert, noise 1", "zero_action",
+                                           "random"]
+    assert by["expert, noise 0"]["normalized"] == pytest.approx(1.0, abs=0.02)
+    ret = [by[k]["pwil_return"] for k in ("expert, noise 0", "expert, noise 1", "zero_action")]
+    assert ret[0] > 2 * ret[1] > 0 and ret[1] > 10 * ret[2]
+    assert by["expert, noise 0"]["pwil_per_step"] <= PWILConfig().alpha
+    assert rho > 0.8 and all(r["length"] == 128 for r in rows)
