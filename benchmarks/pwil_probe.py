@@ -27,7 +27,6 @@ import csv
 import os
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 
@@ -57,25 +56,16 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     return float(spearmanr(x, y).statistic)
 
 
-def _rollouts(task, act, params, keys, noise: float):
-    """obs (N, T, d), actions (N, T, A), task rewards (N, T), dones (N, T) of one policy
-    (a bench.api act function) with Gaussian action noise `noise`, clipped to [-1, 1]."""
-    env, T = task.env, task.episode_length
+def noisy(policy, noise: float):
+    """`policy` (a stateless bench.api Policy, acting deterministically) with Gaussian action
+    noise of std `noise`; `bench.expert.rollout` clips the sum to [-1, 1]."""
+    from bench.api import Policy
 
-    def episode(key):
-        k_reset, k_act = jax.random.split(key)
-
-        def body(s, k):
-            k1, k2 = jax.random.split(k)
-            a = act(params, s.obs, k1, True)
-            a = jnp.clip(a + noise * jax.random.normal(k2, a.shape), -1.0, 1.0)
-            s2 = env.step(s, a)
-            return s2, (s.obs, a, s2.reward, s2.done)
-
-        return jax.lax.scan(body, env.reset(k_reset), jax.random.split(k_act, T))[1]
-
-    obs, actions, rewards, dones = jax.jit(jax.vmap(episode))(keys)
-    return tuple(np.asarray(v) for v in (obs, actions, rewards, dones))
+    def act(params, obs, key, deterministic):
+        k_act, k_noise = jax.random.split(key)
+        a = policy.act(params, obs, k_act, True)
+        return a + noise * jax.random.normal(k_noise, a.shape)
+    return Policy(act=act, params=policy.params)
 
 
 def probe(task_name: str, episodes: int = 16, noise=(0.0, 0.3, 0.6, 1.0),
@@ -83,7 +73,7 @@ def probe(task_name: str, episodes: int = 16, noise=(0.0, 0.3, 0.6, 1.0),
     """(one row per policy, Spearman rho of PWIL return with task return over all
     episodes)."""
     from bench.evaluator import random_policy
-    from bench.expert import expert_policy
+    from bench.expert import expert_policy, rollout
     from bench.floors import zero_action_policy
     from bench.plugins import build_config, get_method
     from methods.pwil.train import expert_atoms
@@ -107,7 +97,9 @@ def probe(task_name: str, episodes: int = 16, noise=(0.0, 0.3, 0.6, 1.0),
     span = demo.expert_return - demo.random_return
     rows, task_ret, pwil_ret = [], [], []
     for name, pol, s in ladder:
-        obs, actions, rewards, dones = _rollouts(task, pol.act, pol.params, keys, s)
+        r = rollout(task, noisy(pol, s), keys)
+        obs, actions = r["obs"][:, :-1], r["actions"]  # obs: s_0..s_T
+        rewards, dones = r["rewards"], r["dones"]
         alive = alive_mask(dones)
         ret = (rewards * alive).sum(1)
         pw = pwil_rewards(args, cfg.use_actions, obs, actions, alive)
