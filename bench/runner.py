@@ -13,6 +13,7 @@ import datetime
 import hashlib
 import json
 import os
+import pickle
 import time
 import traceback
 from typing import Any, Callable, Mapping
@@ -28,7 +29,7 @@ from bench.evaluator import EvalConfig, Evaluator
 from bench.perturb import Perturbation, parse_dynamics
 from bench.machine import git_revision, machine, resources
 from bench.plugins import build_config, get_method
-from bench.store import Store
+from bench.store import Store, write_atomic
 from bench.transfer import default_summary
 from tasks import make_task
 from tasks.demo import Demo, library_versions, load_demo
@@ -185,11 +186,19 @@ def _finite_tree(tree) -> bool:
     return all(np.isfinite(x).all() for x in leaves if np.issubdtype(x.dtype, np.inexact))
 
 
+CHECKPOINT_EVERY_S = 300.0
+"""Seconds of wall time between two checkpoints of a run that can take them."""
+
+
 class RunContext:
-    """Handed to a method's train(): its budget, its clock, and the report hook."""
+    """Handed to a method's train(): its budget, its clock, the report hook, and (on an
+    env-step budget run from a store) `checkpoint` / `resume`, so that a run stopped part way
+    (a session that ends, a killed process) goes on from its last checkpoint."""
 
     def __init__(self, budget: Budget, evaluator: Evaluator, seed: int,
-                 log: Callable[[str], None] = lambda s: None):
+                 log: Callable[[str], None] = lambda s: None,
+                 checkpoint_path: str | None = None,
+                 checkpoint_every_s: float = CHECKPOINT_EVERY_S):
         self.budget = budget
         self.seed = seed
         self.clock = Clock(budget.charge_compile)
@@ -201,6 +210,74 @@ class RunContext:
         self._next_eval_s = 0.0 if budget.seconds is None else budget.seconds / budget.evals
         self._next_eval_steps = (None if budget.env_steps is None
                                  else budget.env_steps / budget.evals)
+        self._checkpoint_path = checkpoint_path
+        self._checkpoint_every_s = float(checkpoint_every_s)
+        self._last_checkpoint = time.perf_counter()
+        self.resumed: list[dict] = []
+        """One entry per resume: the env steps it resumed from and the code that resumed."""
+
+    # ------------------------------------------------------------------ checkpoints
+
+    @property
+    def checkpointing(self) -> bool:
+        """True when this run may checkpoint: an env-step budget, run into a store. (A
+        wall-clock budget is not resumed: its seconds are only comparable in one sitting.)"""
+        return self._checkpoint_path is not None and self.budget.env_steps is not None
+
+    def checkpoint_due(self) -> bool:
+        """True when the last checkpoint (or the start) is `checkpoint_every_s` ago."""
+        return self.checkpointing and (time.perf_counter() - self._last_checkpoint
+                                       >= self._checkpoint_every_s)
+
+    def checkpoint(self, method_state: Any, env_steps: int) -> None:
+        """Save the method's state (any picklable object from which it can go on exactly as
+        if never stopped) with the harness's own (curve, clock, evaluation schedule),
+        atomically, with the method's clock paused. A no-op where not `checkpointing`."""
+        if not self.checkpointing:
+            return
+        with self.clock.paused():
+            c = self.clock
+            harness = {"curve": self.curve, "last_metrics": self.last_metrics,
+                       "last_trajectory": self.last_trajectory,
+                       "next_eval": (self._next_eval_s, self._next_eval_steps),
+                       "elapsed": self.elapsed(), "compile_s": dict(c.compile_s),
+                       "compiles": dict(c.compiles), "interval": c.interval,
+                       "retraced": c.retraced, "resumed": self.resumed}
+            blob = {"env_steps": int(env_steps), "harness": harness, "method": method_state}
+            os.makedirs(os.path.dirname(self._checkpoint_path), exist_ok=True)
+            write_atomic(self._checkpoint_path,
+                         lambda f: pickle.dump(blob, f, protocol=pickle.HIGHEST_PROTOCOL),
+                         binary=True)
+        self._last_checkpoint = time.perf_counter()
+        self.log(f"  checkpoint at {env_steps} env steps")
+
+    def resume(self) -> Any | None:
+        """The method's state from this run's last checkpoint, with the harness's own state
+        restored (the curve so far, the train clock, the evaluation schedule); None when
+        there is none (a fresh run). Call once, before training."""
+        if not self.checkpointing or not os.path.exists(self._checkpoint_path):
+            return None
+        with open(self._checkpoint_path, "rb") as f:
+            blob = pickle.load(f)
+        h, c = blob["harness"], self.clock
+        self.curve, self.last_metrics = h["curve"], h["last_metrics"]
+        self.last_trajectory = h["last_trajectory"]
+        self._next_eval_s, self._next_eval_steps = h["next_eval"]
+        c.compile_s, c.compiles = dict(h["compile_s"]), dict(h["compiles"])
+        c.interval, c.retraced = h["interval"], h["retraced"]
+        # The clock goes on from the saved train time (what this process compiles again on
+        # resuming is charged like any other compile).
+        c._start, c._paused = time.perf_counter() - h["elapsed"] - (
+            0.0 if c.charge_compile else c.compile_s["train"]), 0.0
+        self.resumed = list(h["resumed"]) + [{"env_steps": blob["env_steps"],
+                                              "git_revision": git_revision()}]
+        self._last_checkpoint = time.perf_counter()
+        self.log(f"  resumed from the checkpoint at {blob['env_steps']} env steps")
+        return blob["method"]
+
+    def drop_checkpoint(self) -> None:
+        if self._checkpoint_path is not None and os.path.exists(self._checkpoint_path):
+            os.remove(self._checkpoint_path)
 
     def elapsed(self) -> float:
         return self.clock.elapsed()
@@ -372,8 +449,11 @@ def failed_record(p: Prepared, message: str) -> dict:
 
 
 def execute(p: Prepared, store: Store, force: bool = False,
-            log: Callable[[str], None] = print) -> tuple[dict, bool]:
-    """Run one prepared cell; returns (record, skipped)."""
+            log: Callable[[str], None] = print,
+            checkpoint_every_s: float = CHECKPOINT_EVERY_S) -> tuple[dict, bool]:
+    """Run one prepared cell; returns (record, skipped). A cell with an env-step budget whose
+    method checkpoints (DAC, PWIL) resumes from its last checkpoint in the store, if an
+    earlier run of it was stopped; `force` starts it afresh."""
     if not force:
         done = store.finished(p.run_id)
         if done is not None:
@@ -389,7 +469,11 @@ def execute(p: Prepared, store: Store, force: bool = False,
         r_exp, r_rand = references(task, p.demo, p.dynamics)
     evaluator = Evaluator(scored, req.eval, r_exp, r_rand,
                           allow_sim_at_test=spec.uses.sim_at_test)
-    ctx = RunContext(req.budget, evaluator, req.seed, log=log)
+    ctx = RunContext(req.budget, evaluator, req.seed, log=log,
+                     checkpoint_path=store.checkpoint_path(p.run_id),
+                     checkpoint_every_s=checkpoint_every_s)
+    if force:
+        ctx.drop_checkpoint()
     started = datetime.datetime.now(datetime.timezone.utc)
     t0 = time.perf_counter()
     status, message, result, transfer, nominal = "ok", "", None, {}, None
@@ -452,6 +536,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         "train_s": round(train_s, 3), "wall_s": round(time.perf_counter() - t0, 3),
         "compile_s": {k: round(v, 3) for k, v in ctx.clock.compile_s.items()},
         "compiles": dict(ctx.clock.compiles), "retraced": retraced, "reports": ctx.reports,
+        **({"resumed": ctx.resumed} if ctx.resumed else {}),
         "references": {"expert_return": r_exp, "random_return": r_rand},
         **({"nominal": nominal, "nominal_references": {
             "expert_return": p.demo.expert_return, "random_return": p.demo.random_return}}
@@ -466,6 +551,7 @@ def execute(p: Prepared, store: Store, force: bool = False,
         store.write_trajectory(p.run_id, ctx.last_trajectory)
         record["trajectory"] = os.path.basename(store.trajectory_path(p.run_id))
     store.write(record)
+    ctx.drop_checkpoint()
     log(f"run {p.run_id}: {status}, final return {_fmt(record['final_return'], 2)}, "
         f"normalized {_fmt(record['final_normalized'], 3)}, {record.get('env_steps')} env "
         "steps" + (f"\n{message}" if status == "failed" else ""))

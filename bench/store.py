@@ -114,6 +114,11 @@ class Store:
         except FileNotFoundError:
             return None
 
+    def checkpoint_path(self, run_id: str) -> str:
+        """Where a run with an env-step budget keeps the state it resumes from after a stop
+        (`RunContext.checkpoint`); removed once the run's record is written."""
+        return os.path.join(self.root, "checkpoints", f"{run_id}.pkl")
+
     def records(self) -> Iterator[dict]:
         if not os.path.isdir(self.root):
             return

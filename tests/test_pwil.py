@@ -114,7 +114,14 @@ def test_env_wrapper_rewards_before_stepping_and_resets_at_episode_end():
         env.step_async(a)
         o, rew, dones, _ = env.step_wait()
         np.testing.assert_allclose(rew, expect, rtol=1e-5, atol=1e-30)  # stored as float32
+        paid = rew if t == 0 else paid + rew
     assert dones.all() and np.allclose(env.rewarder.weights, 1 / 128)  # fresh episode
+    # What the reward paid: per env step, and per finished episode (return and length).
+    stats = env.stats()
+    assert stats["train/pwil_episode_return"] == pytest.approx(paid.mean(), rel=1e-6)
+    assert stats["train/pwil_reward_mean"] == pytest.approx(paid.sum() / 256, rel=1e-6)
+    assert stats["train/episode_length"] == 128
+    assert env.stats() == {}  # read once
 
 
 def _pointmass_learner(**over):

@@ -131,6 +131,93 @@ def test_rl_imitation_methods_respect_the_step_budget_and_record_throughput(stor
     assert abs(rec["train_metrics"]["train/updates"] - (1024 - 256)) <= 64
     assert rec["curve"] and rec["final_from"] == "final policy"
     assert np.isfinite(rec["final_return"])
+    # The learner's state beside its score: losses and the critic's value of recent play.
+    last = rec["train_metrics"]
+    assert {"train/critic_loss", "train/actor_loss", "train/q_recent"} <= set(last)
+    assert all(np.isfinite(last[k]) for k in ("train/critic_loss", "train/q_recent"))
+    assert "train/q_recent" in rec["curve"][-1]["train"]
+    if method == "pwil":  # 8 envs x 128 steps: every env finished one episode at the end
+        assert last["train/episode_length"] == 128
+        assert 0 < last["train/pwil_episode_return"] <= 5.0 * 128
+        assert 0 < last["train/pwil_reward_mean"] <= 5.0
+
+
+def small_learner(method: str, task_name: str, common: dict, dac: dict, seed: int,
+                  pwil: dict | None = None):
+    """(DAC or PWIL learner on `task_name` with the `common` config fields and the method's
+    own, the demo view it was built from)."""
+    import importlib
+    import sys
+
+    from bench.access import DemoView
+    from methods.dac.config import DACConfig
+    from methods.pwil.config import PWILConfig
+    from tasks.demo import load_demo
+    importlib.import_module(f"methods.{method}")
+    mod = sys.modules[f"methods.{method}.train"]
+    task = make_task(task_name)
+    demo = DemoView(load_demo(task.spec.demo_path, task),
+                    Uses(demo_states=True, demo_actions=True), method)
+    if method == "dac":
+        return mod.make_learner(task.env, T, demo, DACConfig(**common, **dac), seed=seed), demo
+    model, _ = mod.make_learner(task.env, T, demo, PWILConfig(**common, **(pwil or {})),
+                                seed=seed)
+    return model, demo
+
+
+def test_keep_last_logger_keeps_the_last_value_of_each_key_past_a_dump():
+    from methods.common.sb3 import KeepLastLogger
+    log = KeepLastLogger()
+    log.record("train/critic_loss", 2.5)
+    log.record("train/actor_loss", -1.0)
+    log.dump(1)
+    assert log.name_to_value == {}  # SB3's dump clears its table
+    log.record("train/critic_loss", 0.5)
+    assert log.values() == {"train/critic_loss": 0.5, "train/actor_loss": -1.0}
+
+
+def test_recent_q_is_the_critics_mean_over_the_last_stored_transitions_and_draws_nothing():
+    import importlib
+    import sys
+
+    from bench.access import DemoView
+    from methods.common.sb3 import recent_q
+    from methods.pwil.config import PWILConfig
+    from tasks.demo import load_demo
+    importlib.import_module("methods.pwil")
+    pwil = sys.modules["methods.pwil.train"]
+    task = make_task("pointmass")
+    demo = DemoView(load_demo(task.spec.demo_path, task),
+                    Uses(demo_states=True, demo_actions=True), "pwil")
+    model, _ = pwil.make_learner(task.env, T, demo, PWILConfig(
+        actor_hidden=(8,), critic_hidden=(8,), num_envs=4, steps_per_collect=4), seed=0)
+    buf = model.replay_buffer
+    assert recent_q(model) == {}
+    # Row r of 75 holds, for env e, observation (r, e) and action e / 4.
+    for r in range(75):
+        obs = np.array([[r, e] for e in range(4)], np.float32)
+        buf.add(obs, obs, np.arange(4, dtype=np.float32)[:, None] / 4, np.zeros(4, np.float32),
+                np.zeros(4, bool), [{}] * 4)
+    # The last 10 transitions: rows 74 and 73 (4 envs each), then row 72's envs 0 and 1.
+    want_obs = np.array([[r, e] for r in (74, 73) for e in range(4)] + [[72, 0], [72, 1]],
+                        np.float32)
+    want_act = (want_obs[:, 1:] / 4).astype(np.float32)
+    with torch.no_grad():
+        want = model.critic.q1_forward(torch.from_numpy(want_obs),
+                                       torch.from_numpy(want_act)).mean().item()
+    np_state, torch_state = np.random.get_state(), torch.get_rng_state()
+    got = recent_q(model, k=10)["train/q_recent"]
+    assert got == pytest.approx(want, rel=1e-6)
+    assert np.array_equal(np.random.get_state()[1], np_state[1])
+    assert torch.equal(torch.get_rng_state(), torch_state)
+    # `real` drops the rows it marks False (DAC's absorbing states); none kept: no value.
+    odd = recent_q(model, k=10, real=lambda o: o[:, 1] % 2 == 1)["train/q_recent"]
+    with torch.no_grad():
+        keep = want_obs[:, 1] % 2 == 1
+        want_odd = model.critic.q1_forward(torch.from_numpy(want_obs[keep]),
+                                           torch.from_numpy(want_act[keep])).mean().item()
+    assert odd == pytest.approx(want_odd, rel=1e-6) and odd != pytest.approx(got)
+    assert recent_q(model, k=10, real=lambda o: o[:, 0] < 0) == {}
 
 
 def test_obs_normalizer_equals_the_statistics_of_everything_it_was_given():
@@ -158,25 +245,9 @@ def test_learners_networks_read_observations_normalized_by_shared_running_statis
     139) to the actor, the critics and DAC's discriminator: every network now reads
     (o - mean) / std with one set of statistics, the demo's observations and every collected
     one, and an evaluation snapshot keeps the statistics of its moment."""
-    import importlib
-    import sys
-
-    from bench.access import DemoView
-    from methods.dac.config import DACConfig
-    from methods.pwil.config import PWILConfig
-    from tasks.demo import load_demo
-    importlib.import_module(f"methods.{method}")
-    mod = sys.modules[f"methods.{method}.train"]
-    task = make_task("hopper")
-    demo = DemoView(load_demo(task.spec.demo_path, task),
-                    Uses(demo_states=True, demo_actions=True), method)
-    small = dict(actor_hidden=(16,), critic_hidden=(16,), num_envs=4, steps_per_collect=4,
-                 learning_starts=64, batch_size=16)
-    if method == "dac":
-        model = mod.make_learner(task.env, T, demo, DACConfig(**small, disc_hidden=(16,),
-                                                              disc_batch=16), seed=0)
-    else:
-        model, _ = mod.make_learner(task.env, T, demo, PWILConfig(**small), seed=0)
+    model, demo = small_learner(method, "hopper", dict(
+        actor_hidden=(16,), critic_hidden=(16,), num_envs=4, steps_per_collect=4,
+        learning_starts=64, batch_size=16), dict(disc_hidden=(16,), disc_batch=16), seed=0)
     seen = []
     venv = model.get_env()
     inner = venv.venv  # the batched brax env under the method's wrapper
@@ -207,7 +278,7 @@ def test_learners_networks_read_observations_normalized_by_shared_running_statis
         x = torch.cat([x, torch.zeros(len(x), 1)], 1)
         assert model.discriminator.normalizer.mean.data_ptr() == norm.obs_mean.data_ptr()
         assert np.all(norm(x).numpy()[:, -1] == 0)  # the absorbing indicator passes through
-    z = norm(x).numpy()[:, :task.obs_size]
+    z = norm(x).numpy()[:, :make_task("hopper").obs_size]
     assert np.abs(z.mean(0)).max() < 1e-3 and np.all(np.abs(z) <= 10)
     # A snapshot keeps its statistics while the learner's move on.
     pol = torch_policy(model.actor)

@@ -12,6 +12,9 @@
 - `ObsNormalizer` / `NormalizedObs`: running observation statistics shared by the actor, the
   critics (and DAC's discriminator), applied inside the networks so that the replay keeps
   raw observations and every sample is normalized with the current statistics.
+- `KeepLastLogger` / `recent_q`: the learner's state beside its score in every curve point
+  (critic and actor losses, the critic's value of what the agent did last), read without
+  touching any random stream, so that a run that fails late can be read from its record.
 
 The env handed in is the method's gated TaskView env: without Uses(true_reward) its rewards
 are NaN, so a learner can only ever train on the imitation reward its method computes.
@@ -27,6 +30,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -78,6 +82,23 @@ class BraxVecEnv(VecEnv):
         if seed is not None:
             self._key = jax.random.PRNGKey(seed)
         return [seed] * self.num_envs
+
+    def state_dict(self) -> dict:
+        """Where the envs are (every leaf of their states, their step counters) and the key:
+        enough to go on exactly (`load_state_dict`, into an env of the same task)."""
+        leaves = (None if self._carry is None
+                  else [np.asarray(x) for x in jax.tree_util.tree_leaves(self._carry)])
+        return {"carry": leaves, "key": np.asarray(self._key)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._key = jnp.asarray(state["key"])
+        if state["carry"] is None:
+            self._carry = None
+            return
+        shape = jax.eval_shape(self._reset_fn, self._key)[:2]  # the (state, t) structure
+        treedef = jax.tree_util.tree_structure(shape)
+        self._carry = jax.tree_util.tree_unflatten(treedef,
+                                                   [jnp.asarray(x) for x in state["carry"]])
 
     def reset(self):
         state, t, self._key = self._reset_fn(self._key)
@@ -201,6 +222,17 @@ class ObsNormalizer:
     def var(self) -> np.ndarray:
         return self._m2 / max(self.count, 1.0)
 
+    def state_dict(self) -> dict:
+        return {"count": self.count, "mean": self._mean.copy(), "m2": self._m2.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.count = state["count"]
+        self._mean, self._m2 = state["mean"].copy(), state["m2"].copy()
+        if self.count > 0:  # as `update` leaves them
+            self.mean.copy_(torch.from_numpy(self._mean.astype(np.float32)))
+            self.inv_std.copy_(torch.from_numpy(
+                (1.0 / np.sqrt(self._m2 / self.count + self.eps)).astype(np.float32)))
+
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         return normalize_features(x, self.mean, self.inv_std, self.clip)
 
@@ -267,14 +299,67 @@ class _TorchAct:
         return a.astype(np.float32)
 
 
+class KeepLastLogger(Logger):
+    """SB3's logger with no output that keeps the last value of every key past each dump
+    (SB3 dumps, and clears, every few episodes), so a report reads the learner's latest
+    losses whenever it comes."""
+
+    def __init__(self):
+        super().__init__(folder=None, output_formats=[])
+        self.last: dict = {}
+
+    def dump(self, step: int = 0) -> None:
+        self.last.update(self.name_to_value)
+        super().dump(step)
+
+    def values(self) -> dict:
+        return {**self.last, **self.name_to_value}
+
+
+LOSSES = ("train/critic_loss", "train/actor_loss")
+
+
+def learner_losses(model) -> dict:
+    """The last critic and actor losses SB3's TD3 logged (none before its first update)."""
+    logger = model.logger if model._custom_logger else None
+    vals = logger.values() if isinstance(logger, KeepLastLogger) else {}
+    return {k: float(vals[k]) for k in LOSSES if k in vals}
+
+
+@torch.no_grad()
+def recent_q(model, k: int = 256, real: Callable[[np.ndarray], np.ndarray] | None = None
+             ) -> dict:
+    """{'train/q_recent': mean Q1(s, a)} over the last `k` agent transitions stored in the
+    replay (read in place: no sampling, so no random stream moves), `real` keeping the rows
+    it marks True (DAC: not absorbing); {} while the replay holds none."""
+    buf = model.replay_buffer
+    n_rows = buf.size()
+    if n_rows == 0:
+        return {}
+    rows = (buf.pos - 1 - np.arange(min(n_rows, -(-k // buf.n_envs)))) % buf.buffer_size
+    obs = buf.observations[rows].reshape(-1, buf.obs_shape[-1])[:k]
+    act = buf.actions[rows].reshape(-1, buf.action_dim)[:k]
+    if real is not None:
+        keep = real(obs)
+        obs, act = obs[keep], act[keep]
+    if len(obs) == 0:
+        return {}
+    q = model.critic.q1_forward(torch.as_tensor(obs, device=model.device),
+                                torch.as_tensor(act, device=model.device))
+    return {"train/q_recent": float(q.mean())}
+
+
 class BudgetCallback(BaseCallback):
     """Ends learn() when the harness budget is spent; reports to the RunContext every
-    `report_every` env steps with throughput metrics (env-steps/s, updates/s)."""
+    `report_every` env steps with throughput metrics (env-steps/s, updates/s), the learner's
+    last losses and `recent_q`, and the method's own metrics (which win on a shared key)."""
 
     def __init__(self, ctx, make_policy: Callable[[], Policy], report_every: int,
-                 metrics_fn: Callable[[], dict] = lambda: {}):
+                 metrics_fn: Callable[[], dict] = lambda: {},
+                 q_real: Callable[[np.ndarray], np.ndarray] | None = None):
         super().__init__()
         self.ctx = ctx
+        self.q_real = q_real
         self.make_policy = make_policy
         self.report_every = int(report_every)
         self.metrics_fn = metrics_fn
@@ -282,7 +367,8 @@ class BudgetCallback(BaseCallback):
         self._t0 = None
 
     def _on_training_start(self) -> None:
-        self._t0 = self.ctx.elapsed()
+        if self._t0 is None:  # learn() runs once per collection (`learn_within_budget`)
+            self._t0 = self.ctx.elapsed()
 
     def throughput(self) -> dict:
         dt = max(self.ctx.elapsed() - (self._t0 or 0.0), 1e-9)
@@ -290,12 +376,15 @@ class BudgetCallback(BaseCallback):
                 "speed/updates_per_s": self.model._n_updates / dt,
                 "train/updates": self.model._n_updates}
 
+    def metrics(self) -> dict:
+        return {**self.throughput(), **learner_losses(self.model),
+                **recent_q(self.model, real=self.q_real), **self.metrics_fn()}
+
     def _on_step(self) -> bool:
         steps = self.model.num_timesteps
         if steps >= self._next:
             self._next = steps + self.report_every
-            self.ctx.report(self.make_policy(), env_steps=steps,
-                            metrics={**self.throughput(), **self.metrics_fn()})
+            self.ctx.report(self.make_policy(), env_steps=steps, metrics=self.metrics())
         return not self.ctx.should_stop(steps)
 
 
@@ -339,13 +428,116 @@ def torch_device(name: str) -> str:
     return name
 
 
+REPLAY_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones",
+                 "timeouts")
+REPLAY_COUNTERS = ("pos", "full", "absorbing_added", "demo_rows_sampled")
+
+
+def _replay_state(buf) -> dict:
+    n = buf.buffer_size if buf.full else buf.pos  # only the rows written
+    return {**{k: getattr(buf, k)[:n].copy() for k in REPLAY_ARRAYS
+               if getattr(buf, k, None) is not None},
+            **{k: getattr(buf, k) for k in REPLAY_COUNTERS if hasattr(buf, k)}}
+
+
+def _load_replay_state(buf, state: dict) -> None:
+    for k in REPLAY_ARRAYS:
+        if k in state:
+            getattr(buf, k)[:len(state[k])] = state[k]
+    for k in REPLAY_COUNTERS:
+        if k in state:
+            setattr(buf, k, state[k])
+
+
+def _env_chain(model):
+    """The model's VecEnv and every env it wraps (outermost first)."""
+    env = model.env
+    while env is not None:
+        yield env
+        env = getattr(env, "venv", None)
+
+
+def _has_state(env) -> bool:
+    # On the class: a VecEnvWrapper hands unknown attributes to the env it wraps.
+    return getattr(type(env), "state_dict", None) is not None
+
+
+def learner_state(model) -> dict:
+    """Everything a TD3-based learner needs to go on exactly as if never stopped: networks
+    and optimizers, counters, the replay, the envs (and their wrappers' state), the
+    observation normalizer, the learner's own extras (`extra_state`), and every random
+    stream it draws from (numpy's global, torch's, the action space's)."""
+    norm = next((e.normalizer for e in _env_chain(model)
+                 if getattr(e, "normalizer", None) is not None), None)
+    return {
+        "policy": {k: v.detach().cpu().clone() for k, v in model.policy.state_dict().items()},
+        "actor_opt": model.actor.optimizer.state_dict(),
+        "critic_opt": model.critic.optimizer.state_dict(),
+        "counters": {k: getattr(model, k) for k in ("num_timesteps", "_n_updates",
+                                                    "_episode_num")},
+        "last_obs": None if model._last_obs is None else np.array(model._last_obs),
+        "replay": _replay_state(model.replay_buffer),
+        "envs": [e.state_dict() if _has_state(e) else None for e in _env_chain(model)],
+        "normalizer": None if norm is None else norm.state_dict(),
+        "extra": model.extra_state() if hasattr(model, "extra_state") else None,
+        "rng": {"numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+                "action_space": model.action_space.np_random.bit_generator.state},
+    }
+
+
+def load_learner_state(model, state: dict) -> None:
+    """Put a freshly built learner (same config, task and seed) where `learner_state` was."""
+    envs = list(_env_chain(model))
+    for env, st in zip(envs, state["envs"]):
+        if st is not None and _has_state(env):
+            env.load_state_dict(st)
+    norm = next((e.normalizer for e in envs if getattr(e, "normalizer", None) is not None),
+                None)
+    if norm is not None and state["normalizer"] is not None:
+        norm.load_state_dict(state["normalizer"])
+    model.policy.load_state_dict(state["policy"])
+    model.actor.optimizer.load_state_dict(state["actor_opt"])
+    model.critic.optimizer.load_state_dict(state["critic_opt"])
+    for k, v in state["counters"].items():
+        setattr(model, k, v)
+    model._last_obs = state["last_obs"]
+    _load_replay_state(model.replay_buffer, state["replay"])
+    if state["extra"] is not None:
+        model.load_extra_state(state["extra"])
+    np.random.set_state(state["rng"]["numpy"])
+    torch.set_rng_state(state["rng"]["torch"])
+    if state["rng"]["cuda"] is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+    model.action_space.np_random.bit_generator.state = state["rng"]["action_space"]
+
+
 def learn_within_budget(model, ctx, make_policy: Callable[[], Policy], report_every: int,
-                        metrics_fn: Callable[[], dict] = lambda: {}) -> BudgetCallback:
-    """model.learn() until the harness budget is spent (env steps, or seconds through the
-    callback); returns the callback for its throughput numbers."""
-    cb = BudgetCallback(ctx, make_policy, report_every, metrics_fn=metrics_fn)
-    total = ctx.budget.env_steps if ctx.budget.env_steps is not None else 10 ** 12
-    model.learn(total_timesteps=total, callback=cb)
+                        metrics_fn: Callable[[], dict] = lambda: {},
+                        q_real: Callable[[np.ndarray], np.ndarray] | None = None
+                        ) -> BudgetCallback:
+    """Train until the harness budget is spent (env steps, or seconds through the callback);
+    returns the callback for its throughput numbers and `metrics()`.
+
+    SB3's learn() runs once per collection (`steps_per_collect` env steps, then its
+    updates), which is the same sequence as one learn() over the whole budget, so that
+    between two collections the learner can be checkpointed (`learner_state`, when the run
+    can: `ctx.checkpointing`) and a stopped run resumed from there with the same result."""
+    if not model._custom_logger:
+        model.set_logger(KeepLastLogger())
+    cb = BudgetCallback(ctx, make_policy, report_every, metrics_fn=metrics_fn, q_real=q_real)
+    saved = ctx.resume() if getattr(ctx, "checkpointing", False) else None
+    if saved is not None:
+        load_learner_state(model, saved["learner"])
+        cb._next, cb._t0 = saved["callback"]
+    collect = model.train_freq.frequency * model.n_envs
+    while not ctx.should_stop(model.num_timesteps):
+        model.learn(total_timesteps=collect, callback=cb, reset_num_timesteps=False)
+        if ctx.should_stop(model.num_timesteps):
+            break
+        if getattr(ctx, "checkpointing", False) and ctx.checkpoint_due():
+            ctx.checkpoint({"learner": learner_state(model), "callback": (cb._next, cb._t0)},
+                           model.num_timesteps)
     return cb
 
 

@@ -216,6 +216,21 @@ class DACTD3(TD3):
         self._dstats: dict = {}
         self.metrics: dict = {}
 
+    def extra_state(self) -> dict:
+        """DAC's own state beside TD3's, for a checkpoint (`learner_state`)."""
+        return {"discriminator": {k: v.detach().cpu().clone()
+                                  for k, v in self.discriminator.net.state_dict().items()},
+                "disc_opt": self.discriminator.opt.state_dict(),
+                "counters": {k: getattr(self, k) for k in (
+                    "critic_updates", "actor_updates", "disc_updates", "_disc_owed",
+                    "_dstats", "metrics")}}
+
+    def load_extra_state(self, state: dict) -> None:
+        self.discriminator.net.load_state_dict(state["discriminator"])
+        self.discriminator.opt.load_state_dict(state["disc_opt"])
+        for k, v in state["counters"].items():
+            setattr(self, k, v)
+
     @torch.no_grad()
     def td_target(self, data):
         """(reward, target): r = D's logit; target = r + gamma * min Q'(s', a') with
@@ -349,7 +364,7 @@ def train(task, demo, config: DACConfig, ctx, seed: int) -> TrainResult:
         return torch_policy(model.actor, obs_fn=add_indicator,
                             noise_std=config.exploration_noise)
 
-    cb = learn_within_budget(model, ctx, policy, config.report_every, lambda: model.metrics)
+    cb = learn_within_budget(model, ctx, policy, config.report_every, lambda: model.metrics,
+                             q_real=lambda obs: obs[:, -1] < 0.5)  # not the absorbing state
     return TrainResult(policy(), env_steps=int(model.num_timesteps),
-                       metrics={**cb.throughput(), **model.metrics,
-                                "train/expert_transitions": len(model.expert_obs)})
+                       metrics={**cb.metrics(), "train/expert_transitions": len(model.expert_obs)})

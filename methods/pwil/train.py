@@ -8,6 +8,7 @@ scaled to the run's budget (`DemoMixReplay`).
 """
 from __future__ import annotations
 
+import copy
 from typing import Callable
 
 import numpy as np
@@ -38,7 +39,9 @@ def expert_atoms(demo, config: PWILConfig) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 class PWILReward(VecEnvWrapper):
-    """Replaces the (hidden) env reward with PWIL's; resets the coupling at episode ends."""
+    """Replaces the (hidden) env reward with PWIL's; resets the coupling at episode ends.
+    `stats()` says what the reward paid since it was last read: per step, and per finished
+    episode (its PWIL return, at most alpha x T, and its length)."""
 
     def __init__(self, venv, rewarder: PWILRewarder, use_actions: bool,
                  normalizer: ObsNormalizer | None = None):
@@ -48,10 +51,46 @@ class PWILReward(VecEnvWrapper):
         self.normalizer = normalizer
         self._obs = None
         self._rewards = None
+        self._ep_return = np.zeros(self.num_envs)
+        self._ep_length = np.zeros(self.num_envs, np.int64)
+        self._clear_stats()
+
+    def _clear_stats(self) -> None:
+        self._paid, self._steps = 0.0, 0
+        self._returns: list[float] = []
+        self._lengths: list[int] = []
+
+    def stats(self) -> dict:
+        """Mean PWIL reward per env step, mean PWIL return and length of the episodes that
+        ended, since the last call (keys only where there is something to average)."""
+        out = {}
+        if self._steps:
+            out["train/pwil_reward_mean"] = self._paid / self._steps
+        if self._returns:
+            out["train/pwil_episode_return"] = float(np.mean(self._returns))
+            out["train/episode_length"] = float(np.mean(self._lengths))
+        self._clear_stats()
+        return out
+
+    STATE = ("_obs", "_rewards", "_ep_return", "_ep_length", "_paid", "_steps", "_returns",
+             "_lengths")
+
+    def state_dict(self) -> dict:
+        """The coupling's remaining expert mass per env and the episodes' running sums, for a
+        checkpoint (`learner_state`)."""
+        return {"weights": self.rewarder.weights.copy(),
+                **{k: copy.deepcopy(getattr(self, k)) for k in self.STATE}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rewarder.weights[:] = state["weights"]
+        for k in self.STATE:
+            setattr(self, k, copy.deepcopy(state[k]))
 
     def reset(self):
         self._obs = self.venv.reset()
         self.rewarder.reset()
+        self._ep_return[:] = 0.0
+        self._ep_length[:] = 0
         if self.normalizer is not None:
             self.normalizer.update(self._obs)
         return self._obs
@@ -63,6 +102,15 @@ class PWILReward(VecEnvWrapper):
     def step_wait(self):
         obs, _, dones, infos = self.venv.step_wait()
         self.rewarder.reset(dones)
+        self._paid += float(self._rewards.sum())
+        self._steps += len(self._rewards)
+        self._ep_return += self._rewards
+        self._ep_length += 1
+        for i in np.flatnonzero(dones):
+            self._returns.append(float(self._ep_return[i]))
+            self._lengths.append(int(self._ep_length[i]))
+        self._ep_return[dones] = 0.0
+        self._ep_length[dones] = 0
         if self.normalizer is not None:
             self.normalizer.update(obs)
         self._obs = obs
@@ -173,9 +221,8 @@ def train(task, demo, config: PWILConfig, ctx, seed: int) -> TrainResult:
         buf = model.replay_buffer
         return {"train/replay_size": buf.size() * model.n_envs,
                 "train/demo_count": buf.demo_count(), "train/demo_share": buf.demo_share(),
-                "train/demo_rows_sampled": buf.demo_rows_sampled}
+                "train/demo_rows_sampled": buf.demo_rows_sampled, **model.env.stats()}
 
     cb = learn_within_budget(model, ctx, policy, config.report_every, metrics)
     return TrainResult(policy(), env_steps=int(model.num_timesteps),
-                       metrics={**cb.throughput(), **metrics(),
-                                "train/expert_atoms": len(atoms)})
+                       metrics={**cb.metrics(), "train/expert_atoms": len(atoms)})
