@@ -376,6 +376,19 @@ def cmd_plot_robustness(args):
     return 0
 
 
+def cmd_plot_train(args):
+    from bench.plots import training_plot
+    from bench.plugins import get_method
+    from bench.store import Store
+    from tasks import get_spec
+    get_spec(args.task)
+    version = None if args.any_version else get_method(args.method).version
+    path = training_plot(Store(args.store), args.task, args.method, args.out, args.metrics,
+                         version)
+    print(f"written: {path}")
+    return 0
+
+
 def cmd_plot_cloth(args):
     from bench.plots import cloth_paths_plot
     from bench.store import Store
@@ -609,6 +622,16 @@ def build_parser():
     p.add_argument("--task", required=True)
     p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_plot_robustness)
+    p = sub.add_parser("plot-train", help="a method's score and training metrics (losses, "
+                       "q_recent, PWIL's paid reward...) against env steps, one line per run")
+    p.add_argument("--task", required=True)
+    p.add_argument("--method", required=True)
+    p.add_argument("--metrics", nargs="+", default=None,
+                   help="metric keys to draw (default: all but speed/...)")
+    p.add_argument("--any-version", action="store_true",
+                   help="include runs of every method version (default: the registered one)")
+    p.add_argument("--out", default=None, help=_OUT_HELP)
+    p.set_defaults(fn=cmd_plot_train)
     p = sub.add_parser("plot-cloth", help="the cloth's gripper paths and final cloth per run")
     p.add_argument("--out", default=None, help=_OUT_HELP)
     p.set_defaults(fn=cmd_plot_cloth)
@@ -663,7 +686,8 @@ def main(argv=None) -> int:
         from bench.store import DEFAULT_ROOT
         args.store = DEFAULT_ROOT
     if getattr(args, "out", "") is None and args.cmd in ("sweep", "leaderboard",
-                                                           "plot-robustness", "plot-cloth"):
+                                                           "plot-robustness", "plot-cloth",
+                                                           "plot-train"):
         args.out = default_out(args.store)
     if args.cmd == "render" and args.out is None:
         args.out = default_out(args.store) if args.task == "cloth" else "results"

@@ -63,6 +63,60 @@ def robustness_plot(store: Store, task: str, out_dir: str) -> str:
     return save_figure(fig, out_dir, f"robustness_{task}.png")
 
 
+def training_frame(store: Store, task: str, method: str,
+                   version: str | None = None) -> pd.DataFrame:
+    """One row per (run, evaluation) of `method` on `task` (at `version`; None: every
+    version): seed, env steps, the normalized score, and each training metric the method
+    had last reported before that evaluation (the curve point's `train`)."""
+    rows = []
+    for r in store.records():
+        if (r["task"] != task or r["method"] != method or r["status"] not in ("ok", "diverged")
+                or (version is not None and r["method_version"] != version)):
+            continue
+        for i, point in enumerate(r["curve"]):
+            rows.append({"run_id": r["run_id"], "seed": r["seed"], "point": i,
+                         "env_steps": point["env_steps"], "normalized": point["normalized"],
+                         **(point.get("train") or {})})
+    return pd.DataFrame(rows)
+
+
+def training_plot(store: Store, task: str, method: str, out_dir: str,
+                  metrics: list[str] | None = None, version: str | None = None) -> str:
+    """The normalized score and the training metrics against env steps, one panel each, one
+    line per run (labelled by seed): what the learner was doing when its score moved.
+    `metrics`: the metric keys to draw (default: every one the runs reported but the
+    throughput ones, `speed/...`)."""
+    df = training_frame(store, task, method, version)
+    if df.empty:
+        raise ValueError(f"no finished {method!r} runs on {task!r}"
+                         + (f" at version {version}" if version else "") + f" in "
+                         f"{store.root}; run them first, or check --store, --task and --method")
+    known = [c for c in df.columns
+             if c not in ("run_id", "seed", "point", "env_steps", "normalized")]
+    if metrics is None:
+        metrics = [c for c in known if not c.startswith("speed/") and df[c].notna().any()]
+    unknown = [m for m in metrics if m not in known]
+    if unknown:
+        raise ValueError(f"unknown metric(s) {', '.join(unknown)} for {method!r} on {task!r}; "
+                         f"the runs reported: {', '.join(known) or 'none'}")
+    panels = ["normalized"] + list(metrics)
+    cols = min(4, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    for ax, key in zip(axes.flat, panels):
+        for (run, seed), g in df.groupby(["run_id", "seed"], sort=True):
+            g = g.sort_values("point")
+            ax.plot(g.env_steps, g[key], marker=".", label=f"seed {seed}")
+        ax.set_title(key, fontsize=9)
+        ax.set_xlabel("env steps", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"{method} on {task}: score and training metrics against env steps")
+    return save_figure(fig, out_dir, f"train_{task}_{method}.png")
+
+
 def cloth_paths_plot(store: Store, out_dir: str) -> str:
     """What the cloth's final policies do: per method, the two grippers' paths in the
     (z, y) side view of the first evaluation episode (the stored trajectory), the demo's in

@@ -49,6 +49,34 @@ def test_robustness_plot_from_transfer_entries(store, tmp_path):
         robustness_plot(store, "hopper", str(tmp_path))
 
 
+def test_training_plot_reads_each_curve_points_metrics_at_the_registered_version(store,
+                                                                                  tmp_path):
+    from bench.plots import training_frame, training_plot
+
+    def point(steps, norm, **train):
+        return {"env_steps": steps, "normalized": norm, "train": train}
+    for rid, seed, version, curve in [
+            ("a", 0, "2", [point(10, 0.2, **{"train/q_recent": 4.0, "speed/x": 1.0}),
+                           point(20, 0.9, **{"train/q_recent": 8.0, "speed/x": 1.0})]),
+            ("b", 1, "2", [point(10, 0.1, **{"train/q_recent": 3.0}),
+                           point(20, 0.3, **{"train/q_recent": 900.0})]),
+            ("c", 0, "1", [point(10, -1.0, **{"train/q_recent": 1.0})])]:
+        store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
+                     "status": "ok", "method_version": version, "curve": curve})
+    df = training_frame(store, "pointmass", "m", version="2")
+    assert sorted(df.run_id.unique()) == ["a", "b"] and len(df) == 4
+    b = df[df.run_id == "b"].sort_values("env_steps")
+    assert list(b["train/q_recent"]) == [3.0, 900.0] and list(b.normalized) == [0.1, 0.3]
+    assert len(training_frame(store, "pointmass", "m")) == 5  # every version
+    path = training_plot(store, "pointmass", "m", str(tmp_path), version="2")
+    assert path.endswith("train_pointmass_m.png")
+    assert (tmp_path / "train_pointmass_m.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="unknown metric.*train/loss.*train/q_recent"):
+        training_plot(store, "pointmass", "m", str(tmp_path), metrics=["train/loss"])
+    with pytest.raises(ValueError, match="no finished 'm' runs on 'hopper'"):
+        training_plot(store, "hopper", "m", str(tmp_path))
+
+
 def test_different_configs_are_not_pooled(store):
     for rid, seed, lr in (("a", 0, 1e-3), ("b", 1, 1e-3), ("c", 0, 1e-4)):
         store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
