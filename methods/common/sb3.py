@@ -214,9 +214,13 @@ class ObsNormalizer:
         self._mean = self._mean + delta * n / total
         self._m2 = self._m2 + m2 + delta ** 2 * self.count * n / total
         self.count = total
+        self._publish()
+
+    def _publish(self) -> None:
+        """Write the host statistics into the tensors the networks read."""
         self.mean.copy_(torch.from_numpy(self._mean.astype(np.float32)))
         self.inv_std.copy_(torch.from_numpy(
-            (1.0 / np.sqrt(self._m2 / total + self.eps)).astype(np.float32)))
+            (1.0 / np.sqrt(self._m2 / self.count + self.eps)).astype(np.float32)))
 
     @property
     def var(self) -> np.ndarray:
@@ -229,9 +233,7 @@ class ObsNormalizer:
         self.count = state["count"]
         self._mean, self._m2 = state["mean"].copy(), state["m2"].copy()
         if self.count > 0:  # as `update` leaves them
-            self.mean.copy_(torch.from_numpy(self._mean.astype(np.float32)))
-            self.inv_std.copy_(torch.from_numpy(
-                (1.0 / np.sqrt(self._m2 / self.count + self.eps)).astype(np.float32)))
+            self._publish()
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         return normalize_features(x, self.mean, self.inv_std, self.clip)
@@ -462,13 +464,18 @@ def _has_state(env) -> bool:
     return getattr(type(env), "state_dict", None) is not None
 
 
+def _normalizer(model) -> ObsNormalizer | None:
+    """The observation normalizer a wrapper of the model's env updates (None: off)."""
+    return next((e.normalizer for e in _env_chain(model)
+                 if getattr(e, "normalizer", None) is not None), None)
+
+
 def learner_state(model) -> dict:
     """Everything a TD3-based learner needs to go on exactly as if never stopped: networks
     and optimizers, counters, the replay, the envs (and their wrappers' state), the
     observation normalizer, the learner's own extras (`extra_state`), and every random
     stream it draws from (numpy's global, torch's, the action space's)."""
-    norm = next((e.normalizer for e in _env_chain(model)
-                 if getattr(e, "normalizer", None) is not None), None)
+    norm = _normalizer(model)
     return {
         "policy": {k: v.detach().cpu().clone() for k, v in model.policy.state_dict().items()},
         "actor_opt": model.actor.optimizer.state_dict(),
@@ -488,12 +495,10 @@ def learner_state(model) -> dict:
 
 def load_learner_state(model, state: dict) -> None:
     """Put a freshly built learner (same config, task and seed) where `learner_state` was."""
-    envs = list(_env_chain(model))
-    for env, st in zip(envs, state["envs"]):
+    for env, st in zip(_env_chain(model), state["envs"]):
         if st is not None and _has_state(env):
             env.load_state_dict(st)
-    norm = next((e.normalizer for e in envs if getattr(e, "normalizer", None) is not None),
-                None)
+    norm = _normalizer(model)
     if norm is not None and state["normalizer"] is not None:
         norm.load_state_dict(state["normalizer"])
     model.policy.load_state_dict(state["policy"])
