@@ -75,15 +75,40 @@ def table(frame: pd.DataFrame, budgets=BUDGETS) -> pd.DataFrame:
                            ascending=[True, True, False]).reset_index(drop=True)
 
 
+def gaps(df: pd.DataFrame) -> dict[int, list[tuple[str, str, int]]]:
+    """Per step budget, the (task, method, seeds) cells that hold fewer runs than the most
+    any cell of that budget holds, counting a method that some task has and another lacks
+    as 0 seeds there: what the store is still missing before the budget's table is
+    complete. A method's variants count together (the most seeds of any of them)."""
+    out = {}
+    for budget, part in df.groupby("env_steps_budget"):
+        seeds = part.groupby(["task", "method"]).seeds.max()
+        want = int(seeds.max())
+        tasks, methods = sorted(part.task.unique()), sorted(part.method.unique())
+        out[int(budget)] = [(t, m, int(seeds.get((t, m), 0))) for t in tasks for m in methods
+                            if seeds.get((t, m), 0) < want]
+    return out
+
+
+def _gap_note(missing: list[tuple[str, str, int]], want: int) -> str:
+    by_task: dict[str, list[str]] = {}
+    for task, method, n in missing:
+        by_task.setdefault(task, []).append(f"{method} {n}")
+    return (f"Incomplete (runs out of {want}): "
+            + "; ".join(f"{t} {', '.join(ms)}" for t, ms in by_task.items()) + ".")
+
+
 def _fmt_steps(v) -> str:
     return "-" if pd.isna(v) else format_steps(float(v))
 
 
 def to_markdown(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> str:
-    """One table per step budget, with each task's zero_action floor beside its rows."""
+    """One table per step budget, with each task's zero_action floor beside its rows and,
+    under it, the cells that hold fewer runs than the fullest (`gaps`)."""
     if df.empty:
         return "_no step-budgeted runs in the store (`ildbench sweep --budget-steps N`)_\n"
     floors = floors or {}
+    missing = gaps(df)
     out = ["# Sample-matched scores (equal env steps)", "",
            "Normalized score (1 = expert, 0 = random policy) at each env-step budget, read "
            "from the anytime evaluations of step-budgeted runs (bench/sample_matched.py). "
@@ -102,4 +127,6 @@ def to_markdown(df: pd.DataFrame, floors: dict[str, dict] | None = None) -> str:
         out += [f"## {format_steps(budget)} env steps", "",
                 show[["task", "method", "normalized", "seeds", "env steps read", "updates",
                       "zero_action"]].to_markdown(index=False), ""]
+        if missing.get(int(budget)):
+            out += [_gap_note(missing[int(budget)], int(part.seeds.max())), ""]
     return "\n".join(out) + "\n"

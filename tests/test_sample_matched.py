@@ -87,3 +87,19 @@ def test_the_report_writes_the_sample_matched_table_beside_the_wall_clock_one(st
         (200_000, "ild", 0.95)]
     text = (tmp_path / "out" / "paper_comparison.md").read_text()
     assert "## 50k env steps (sample-matched)" in text and "(wall-clock)" not in text
+
+
+def test_the_table_names_the_cells_that_hold_fewer_runs_than_the_fullest():
+    df = pd.DataFrame([
+        {"env_steps_budget": 50_000, "task": t, "method": m, "variant": "v", "seeds": n,
+         "normalized_mean": 0.5, "normalized_std": 0.1, "env_steps_read": 51_200.0,
+         "updates_median": 50_000.0}
+        for t, m, n in (("ant", "ild", 3), ("ant", "dac", 1), ("hopper", "ild", 3),
+                        ("hopper", "dac", 3), ("hopper", "pwil", 2))])
+    assert sm.gaps(df) == {50_000: [("ant", "dac", 1), ("ant", "pwil", 0),
+                                    ("hopper", "pwil", 2)]}
+    md = sm.to_markdown(df)
+    assert "Incomplete (runs out of 3): ant dac 1, pwil 0; hopper pwil 2." in md
+    full = df.assign(seeds=3)
+    full = pd.concat([full, full.iloc[[0]].assign(method="pwil")])
+    assert sm.gaps(full) == {50_000: []} and "Incomplete" not in sm.to_markdown(full)
