@@ -18,8 +18,9 @@
 
 Aggregates use one variant per (method, task): the one with the most scored seeds, and
 among equals the one with the newest run (a store may hold older or differently-configured
-runs). They refuse unequal seed counts: the report
-then says which cell is short instead of averaging unequal strata.
+runs). They never average unequal strata: where cells hold different seed counts, they are
+taken over the tasks on which every method has the most seeds any cell holds, and the report
+names the tasks left out and the cell that is short; with no such task it says so instead.
 """
 from __future__ import annotations
 
@@ -77,9 +78,20 @@ def aggregates(frame: pd.DataFrame, of: str = "ild", reps: int = 2000
         part = imitation.dropna(subset=[value])
         if part.empty:
             continue
+        scores = part.assign(**{value: part[value].astype(float)})
         try:
-            mats = stats.score_matrices(part.assign(**{value: part[value].astype(float)}),
-                                        value)
+            mats = stats.score_matrices(scores, value)
+        except stats.UnequalSeeds as e:
+            # A partly run store: aggregate over the tasks whose cells are all complete, and
+            # name the ones left out.
+            tasks, full = stats.complete_tasks(scores)
+            if not tasks:
+                notes.append(f"{value}: not aggregated: {e}")
+                continue
+            mats = stats.score_matrices(scores, value, tasks=tasks)
+            notes.append(f"{value}: over the tasks where every method has {full} seeds "
+                         f"({', '.join(tasks)}); left out until their cells are complete: "
+                         f"{', '.join(sorted(set(scores.task) - set(tasks)))} ({e})")
         except stats.ShapeError as e:
             notes.append(f"{value}: not aggregated: {e}")
             continue

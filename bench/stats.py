@@ -27,6 +27,10 @@ class ShapeError(ValueError):
     pass
 
 
+class UnequalSeeds(ShapeError):
+    """Cells of one comparison hold different numbers of seeds."""
+
+
 def _matrix(x, name: str = "scores") -> np.ndarray:
     a = np.asarray(x, dtype=float)
     if a.ndim == 1:
@@ -110,6 +114,21 @@ def poi_ci(x, y, reps: int = 2000, conf: float = 0.95, seed: int = 0
     return (point, *percentile_ci(reps_out, conf))
 
 
+def complete_tasks(frame: pd.DataFrame) -> tuple[list[str], int]:
+    """(tasks, n): the tasks on which every method of `frame` (columns method, task, seed)
+    holds n seeds, n being the most any (method, task) cell holds: the tasks a partly run
+    store can already aggregate over with equal strata."""
+    if frame.empty:
+        return [], 0
+    common = set.intersection(*(set(g.task) for _, g in frame.groupby("method")))
+    counts = frame[frame.task.isin(common)].groupby(["method", "task"]).seed.nunique()
+    if counts.empty:
+        return [], 0
+    full = int(counts.max())
+    per_task = counts[counts == full].reset_index().groupby("task").method.nunique()
+    return sorted(per_task[per_task == frame.method.nunique()].index), full
+
+
 def score_matrices(frame: pd.DataFrame, value: str = "normalized",
                    tasks: list[str] | None = None) -> dict[str, pd.DataFrame]:
     """Per method, a (seed x task) table of `value` from a frame with columns method, task,
@@ -130,7 +149,7 @@ def score_matrices(frame: pd.DataFrame, value: str = "normalized",
     counts = frame[frame.task.isin(tasks)].groupby(["method", "task"]).seed.nunique()
     if counts.nunique() != 1:
         lo = counts.idxmin()
-        raise ShapeError(f"unequal seed counts: {lo[0]} on {lo[1]} has {counts.min()} seeds, "
+        raise UnequalSeeds(f"unequal seed counts: {lo[0]} on {lo[1]} has {counts.min()} seeds, "
                          f"others up to {counts.max()}; finish the sweep (it resumes) or "
                          "aggregate over tasks with equal counts")
     out = {}

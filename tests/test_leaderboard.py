@@ -159,11 +159,23 @@ def test_report_aggregates_curves_and_refusal(store, tmp_path):
     assert nominal.loc["ild", "iqm"] == pytest.approx(0.8)         # middle of .7 .8 .8 .9
     poi = agg[agg.comparison == "P(ild > bc)"]
     assert poi.p.iloc[0] == 1.0
-    # a third seed for one cell only: aggregates refuse and say which cell is short
+    # a third seed for one cell only: no task has every method at 3 seeds, so the
+    # aggregates refuse and say which cell is short
     _full(store, "extra", "ild", "hopper", 2, 0.5, [_pt(5, 0.5)])
     write_report(store, str(tmp_path / "out2"), reps=50)
     text = (tmp_path / "out2" / "aggregates.md").read_text()
     assert "not aggregated: unequal seed counts" in text
+    # bc's third hopper seed completes hopper at 3; reacher (2 seeds) is left out, named
+    _full(store, "extra_bc", "bc", "hopper", 2, 0.1, [_pt(5, 0.1)])
+    write_report(store, str(tmp_path / "out3"), reps=50)
+    agg = pd.read_csv(tmp_path / "out3" / "aggregates.csv")
+    nominal = agg[(agg.score == "normalized") & agg.method.notna()].set_index("method")
+    assert set(nominal.task_set) == {"hopper"}
+    assert nominal.loc["ild", "mean"] == pytest.approx((0.9 + 0.8 + 0.5) / 3)
+    assert nominal.loc["bc", "mean"] == pytest.approx((0.5 + 0.4 + 0.1) / 3)
+    text = (tmp_path / "out3" / "aggregates.md").read_text()
+    assert ("normalized: over the tasks where every method has 3 seeds (hopper); left out "
+            "until their cells are complete: reacher (unequal seed counts: ") in text
 
 
 def test_a_task_with_a_weak_reference_stays_in_the_table_but_not_the_aggregates(

@@ -88,6 +88,18 @@ def test_score_matrices_refuse_unequal_seeds_and_duplicates():
     assert str(e.value) == "bc has no runs on b"
 
 
+def test_complete_tasks_are_those_where_every_method_has_the_fullest_count():
+    rows = [("ild", "a", 0, 1.0), ("ild", "a", 1, 0.8), ("bc", "a", 0, 0.5), ("bc", "a", 1, 0.4),
+            ("ild", "b", 0, 0.9), ("ild", "b", 1, 0.7), ("bc", "b", 0, 0.3),
+            ("ild", "c", 0, 0.9), ("ild", "c", 1, 0.7)]               # bc has no run on c
+    assert stats.complete_tasks(_frame(rows)) == (["a"], 2)
+    assert stats.complete_tasks(_frame(rows[:2] + rows[4:6])) == (["a", "b"], 2)  # one method
+    assert stats.complete_tasks(_frame(rows + [("ild", "a", 2, 0.1)])) == ([], 3)
+    assert stats.complete_tasks(_frame([])) == ([], 0)
+    with pytest.raises(stats.UnequalSeeds):
+        stats.score_matrices(_frame(rows))
+
+
 def test_aggregate_and_improvement_tables():
     rows = [(m, t, s, v) for m, vals in (("ild", [[1.0, 0.9], [0.8, 0.7]]),
                                          ("bc", [[0.5, 0.3], [0.4, 0.2]]))
