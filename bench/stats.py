@@ -114,14 +114,19 @@ def poi_ci(x, y, reps: int = 2000, conf: float = 0.95, seed: int = 0
     return (point, *percentile_ci(reps_out, conf))
 
 
+def shared_tasks(frame: pd.DataFrame) -> set[str]:
+    """The tasks every method of `frame` (columns method, task) has runs on."""
+    return set.intersection(*(set(g.task) for _, g in frame.groupby("method")))
+
+
 def complete_tasks(frame: pd.DataFrame) -> tuple[list[str], int]:
     """(tasks, n): the tasks on which every method of `frame` (columns method, task, seed)
     holds n seeds, n being the most any (method, task) cell holds: the tasks a partly run
     store can already aggregate over with equal strata."""
     if frame.empty:
         return [], 0
-    common = set.intersection(*(set(g.task) for _, g in frame.groupby("method")))
-    counts = frame[frame.task.isin(common)].groupby(["method", "task"]).seed.nunique()
+    counts = (frame[frame.task.isin(shared_tasks(frame))]
+              .groupby(["method", "task"]).seed.nunique())
     if counts.empty:
         return [], 0
     full = int(counts.max())
@@ -142,16 +147,15 @@ def score_matrices(frame: pd.DataFrame, value: str = "normalized",
         raise ShapeError(f"{r.method} on {r.task} seed {r.seed} appears twice (two variants of "
                          "one method in one comparison?); filter to one variant first")
     if tasks is None:
-        common = set.intersection(*(set(g.task) for _, g in frame.groupby("method")))
-        tasks = sorted(common)
+        tasks = sorted(shared_tasks(frame))
     if not tasks:
         raise ShapeError("the methods share no task: nothing to aggregate")
     counts = frame[frame.task.isin(tasks)].groupby(["method", "task"]).seed.nunique()
     if counts.nunique() != 1:
         lo = counts.idxmin()
-        raise UnequalSeeds(f"unequal seed counts: {lo[0]} on {lo[1]} has {counts.min()} seeds, "
-                         f"others up to {counts.max()}; finish the sweep (it resumes) or "
-                         "aggregate over tasks with equal counts")
+        raise UnequalSeeds(f"unequal seed counts: {lo[0]} on {lo[1]} has {counts.min()} "
+                           f"seeds, others up to {counts.max()}; finish the sweep (it resumes) "
+                           "or aggregate over tasks with equal counts")
     out = {}
     for method, g in frame[frame.task.isin(tasks)].groupby("method"):
         wide = g.pivot(index="seed", columns="task", values=value)
