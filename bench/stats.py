@@ -153,8 +153,10 @@ def score_matrices(frame: pd.DataFrame, value: str = "normalized",
     counts = frame[frame.task.isin(tasks)].groupby(["method", "task"]).seed.nunique()
     if counts.nunique() != 1:
         lo = counts.idxmin()
-        raise UnequalSeeds(f"unequal seed counts: {lo[0]} on {lo[1]} has {counts.min()} "
-                           f"seeds, others up to {counts.max()}; finish the sweep (it resumes) "
+        few = counts.min()
+        raise UnequalSeeds(f"unequal seed counts: {lo[0]} on {lo[1]} has {few} "
+                           f"seed{'' if few == 1 else 's'}, others up to {counts.max()}; "
+                           "finish the sweep (it resumes) "
                            "or aggregate over tasks with equal counts")
     out = {}
     for method, g in frame[frame.task.isin(tasks)].groupby("method"):

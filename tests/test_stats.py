@@ -71,7 +71,7 @@ def _frame(rows):
 def test_score_matrices_refuse_unequal_seeds_and_duplicates():
     rows = [("ild", "a", 0, 1.0), ("ild", "a", 1, 0.8), ("bc", "a", 0, 0.5), ("bc", "a", 1, 0.4),
             ("ild", "b", 0, 0.9), ("ild", "b", 1, 0.7), ("bc", "b", 0, 0.3)]
-    with pytest.raises(stats.ShapeError, match="bc on b has 1 seeds"):
+    with pytest.raises(stats.ShapeError, match="bc on b has 1 seed, others up to 2"):
         stats.score_matrices(_frame(rows))
     mats = stats.score_matrices(_frame(rows), tasks=["a"])
     assert mats["ild"].shape == (2, 1) and mats["bc"]["a"].tolist() == [0.5, 0.4]
