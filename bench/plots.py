@@ -104,7 +104,7 @@ def training_plot(store: Store, task: str, method: str, out_dir: str,
     rows = -(-len(panels) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
     for ax, key in zip(axes.flat, panels):
-        for (run, seed), g in df.groupby(["run_id", "seed"], sort=True):
+        for (seed, run), g in df.groupby(["seed", "run_id"], sort=True):
             g = g.sort_values("point")
             ax.plot(g.env_steps, g[key], marker=".", label=f"seed {seed}")
         ax.set_title(key, fontsize=9)

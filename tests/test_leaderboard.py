@@ -77,6 +77,24 @@ def test_training_plot_reads_each_curve_points_metrics_at_the_registered_version
         training_plot(store, "hopper", "m", str(tmp_path))
 
 
+def test_training_plot_draws_its_runs_in_seed_order(store, tmp_path, monkeypatch):
+    """The legend reads seed 0, 1, 2 whatever the run ids' order (run ids are hashes).
+    Planted fault: grouping the runs by run id first."""
+    import bench.plots as plots
+    for rid, seed in [("ff", 0), ("aa", 2), ("cc", 1)]:
+        store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
+                     "status": "ok", "method_version": "1",
+                     "curve": [{"env_steps": 10, "normalized": 0.5,
+                                "train": {"train/q_recent": 1.0}}]})
+    drawn = {}
+    monkeypatch.setattr(plots, "save_figure", lambda fig, out, name: drawn.setdefault("fig", fig))
+    plots.training_plot(store, "pointmass", "m", str(tmp_path))
+    axes = drawn["fig"].axes
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == [
+        "seed 0", "seed 1", "seed 2"]
+    assert [line.get_label() for line in axes[1].get_lines()] == ["seed 0", "seed 1", "seed 2"]
+
+
 def test_different_configs_are_not_pooled(store):
     for rid, seed, lr in (("a", 0, 1e-3), ("b", 1, 1e-3), ("c", 0, 1e-4)):
         store.write({"run_id": rid, "task": "pointmass", "method": "m", "seed": seed,
